@@ -1,0 +1,7 @@
+"""``python -m ar_anchor`` is ``ar-anchor``."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

@@ -1,0 +1,344 @@
+"""Tracker configuration: TOML read into validated, frozen dataclasses.
+
+Every unknown key and every bad value is a :class:`~ar_anchor.errors.ConfigError` whose message
+names the file and the key, e.g. ``configs/x.toml: [markers] length_m: must be > 0, got -1``.
+The defaults of these dataclasses are exactly ``configs/default.toml`` (a test keeps them equal).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+
+from .errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on 3.10 only
+    import tomli as tomllib
+
+__all__ = [
+    "BoardConfig",
+    "DetectorConfig",
+    "MarkersConfig",
+    "PoseConfig",
+    "RecordingConfig",
+    "TrackerConfig",
+    "dictionary_names",
+    "load_config",
+]
+
+CORNER_REFINEMENTS = {
+    "none": cv2.aruco.CORNER_REFINE_NONE,
+    "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+    "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+    "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
+}
+
+
+def dictionary_names() -> list[str]:
+    """Names of cv2.aruco's predefined dictionaries (``DICT_4X4_50``, ...), canonical spelling."""
+    names = [n for n in dir(cv2.aruco) if n.startswith("DICT_")]
+    # OpenCV exposes both DICT_APRILTAG_16h5 and DICT_APRILTAG_16H5; keep one spelling per value.
+    by_value: dict[int, str] = {}
+    for name in sorted(names):
+        by_value.setdefault(int(getattr(cv2.aruco, name)), name)
+    return sorted(by_value.values())
+
+
+def dictionary_id(name: str) -> int:
+    """cv2.aruco constant for a predefined dictionary name (case-insensitive)."""
+    lookup = {n.upper(): n for n in dir(cv2.aruco) if n.startswith("DICT_")}
+    key = name.upper() if isinstance(name, str) else ""
+    if key not in lookup:
+        raise ConfigError(f"unknown dictionary '{name}' (known: {', '.join(dictionary_names())})")
+    return int(getattr(cv2.aruco, lookup[key]))
+
+
+def dictionary_size(name: str) -> int:
+    """Number of markers in a predefined dictionary."""
+    return int(cv2.aruco.getPredefinedDictionary(dictionary_id(name)).bytesList.shape[0])
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    dictionary: str = "DICT_4X4_50"
+    corner_refinement: str = "subpix"
+
+
+@dataclass(frozen=True)
+class MarkersConfig:
+    length_m: float = 0.05
+    lengths_m: Mapping[int, float] = field(default_factory=lambda: {7: 0.04})
+    ids: tuple[int, ...] = ()  # lone markers to track; empty: every id of the dictionary
+
+    def length_of(self, marker_id: int) -> float:
+        return self.lengths_m.get(int(marker_id), self.length_m)
+
+
+@dataclass(frozen=True)
+class BoardConfig:
+    name: str
+    kind: str = "grid"
+    cols: int = 2
+    rows: int = 2
+    marker_length_m: float = 0.04
+    separation_m: float = 0.02
+    first_id: int = 0
+    ids: tuple[int, ...] = ()
+
+    @property
+    def marker_ids(self) -> tuple[int, ...]:
+        """Ids in row-major order from the top-left marker (OpenCV's GridBoard order)."""
+        if self.ids:
+            return self.ids
+        return tuple(range(self.first_id, self.first_id + self.cols * self.rows))
+
+    @property
+    def target(self) -> str:
+        return f"board:{self.name}"
+
+
+@dataclass(frozen=True)
+class PoseConfig:
+    max_reproj_px: float = 3.0
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    image_every: int = 1
+    image_scale: float = 1.0
+    jpeg_quality: int = 80
+
+
+def _default_boards() -> tuple[BoardConfig, ...]:
+    return (BoardConfig(name="desk", cols=2, rows=2, marker_length_m=0.04, separation_m=0.02, first_id=10),)
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    markers: MarkersConfig = field(default_factory=MarkersConfig)
+    boards: tuple[BoardConfig, ...] = field(default_factory=_default_boards)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    source: str = "<defaults>"
+
+    def board_of(self, marker_id: int) -> BoardConfig | None:
+        for board in self.boards:
+            if marker_id in board.marker_ids:
+                return board
+        return None
+
+    def marker_length(self, marker_id: int) -> float:
+        """Side of marker ``marker_id`` in metres (board markers take their board's length)."""
+        board = self.board_of(marker_id)
+        return board.marker_length_m if board is not None else self.markers.length_of(marker_id)
+
+    def tracks_marker(self, marker_id: int) -> bool:
+        """Is this id one we track (a configured lone marker or a board member)?"""
+        if self.board_of(marker_id) is not None:
+            return True
+        return not self.markers.ids or marker_id in self.markers.ids
+
+    def with_overrides(self, *, dictionary: str | None = None, marker_length_m: float | None = None) -> TrackerConfig:
+        """Copy with command-line overrides applied and validated."""
+        import dataclasses
+
+        config = self
+        if dictionary is not None:
+            dictionary_id(dictionary)
+            config = dataclasses.replace(config, detector=dataclasses.replace(config.detector, dictionary=dictionary))
+        if marker_length_m is not None:
+            if not (math.isfinite(marker_length_m) and marker_length_m > 0):
+                raise ConfigError(f"--marker-length: must be a positive length in metres, got {marker_length_m}")
+            config = dataclasses.replace(
+                config, markers=dataclasses.replace(config.markers, length_m=float(marker_length_m))
+            )
+        return config
+
+
+# ---------------------------------------------------------------------------- parsing
+
+
+class _Table:
+    """One TOML table being read: takes keys, then complains about any left over."""
+
+    def __init__(self, data: Any, where: str, path: str) -> None:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: {where} must be a table, got {type(data).__name__}")
+        self.data = dict(data)
+        self.where = where
+        self.path = path
+
+    def fail(self, key: str, message: str) -> ConfigError:
+        return ConfigError(f"{self.path}: {self.where} {key}: {message}")
+
+    def take(self, key: str, kind: type, default: Any, check: Callable[[Any], str | None] | None = None) -> Any:
+        if key not in self.data:
+            return default
+        value = self.data.pop(key)
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if kind is int and isinstance(value, bool) or not isinstance(value, kind):
+            raise self.fail(key, f"must be {_kind_name(kind)}, got {value!r}")
+        if kind is float and not math.isfinite(value):
+            raise self.fail(key, f"must be finite, got {value!r}")
+        if check is not None:
+            problem = check(value)
+            if problem:
+                raise self.fail(key, f"{problem}, got {value!r}")
+        return value
+
+    def take_ids(self, key: str, limit: int) -> tuple[int, ...]:
+        if key not in self.data:
+            return ()
+        value = self.data.pop(key)
+        if not isinstance(value, list) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+            raise self.fail(key, f"must be a list of integer marker ids, got {value!r}")
+        bad = [v for v in value if not 0 <= v < limit]
+        if bad:
+            raise self.fail(key, f"ids {bad} are outside the dictionary (0..{limit - 1})")
+        if len(set(value)) != len(value):
+            raise self.fail(key, f"ids must be unique, got {value!r}")
+        return tuple(value)
+
+    def done(self) -> None:
+        if self.data:
+            unknown = ", ".join(sorted(map(str, self.data)))
+            raise ConfigError(f"{self.path}: {self.where}: unknown key(s): {unknown}")
+
+
+def _kind_name(kind: type) -> str:
+    return {int: "an integer", float: "a number", str: "a string", bool: "true or false"}.get(kind, kind.__name__)
+
+
+def _positive(value: float) -> str | None:
+    return None if value > 0 else "must be > 0"
+
+
+def _non_negative(value: float) -> str | None:
+    return None if value >= 0 else "must be >= 0"
+
+
+def _in_range(lo: float, hi: float) -> Callable[[float], str | None]:
+    return lambda value: None if lo <= value <= hi else f"must be in [{lo:g}, {hi:g}]"
+
+
+_BOARD = BoardConfig(name="defaults")
+
+
+def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConfig:
+    """Validate a parsed TOML document into a :class:`TrackerConfig`."""
+    root = _Table(data, "top level", path)
+    defaults = TrackerConfig()
+
+    det = _Table(root.data.pop("detector", {}), "[detector]", path)
+    dictionary = det.take("dictionary", str, defaults.detector.dictionary)
+    try:
+        dictionary_id(dictionary)
+    except ConfigError as err:
+        raise det.fail("dictionary", str(err)) from None
+    refinement = det.take(
+        "corner_refinement", str, defaults.detector.corner_refinement,
+        lambda v: None if v in CORNER_REFINEMENTS else f"must be one of {', '.join(CORNER_REFINEMENTS)}",
+    )
+    det.done()
+    limit = dictionary_size(dictionary)
+
+    mk = _Table(root.data.pop("markers", {}), "[markers]", path)
+    length_m = mk.take("length_m", float, defaults.markers.length_m, _positive)
+    ids = mk.take_ids("ids", limit)
+    lengths_raw = _Table(mk.data.pop("lengths_m", {}), "[markers.lengths_m]", path)
+    lengths: dict[int, float] = {}
+    for key in list(lengths_raw.data):
+        if not key.isdigit() or not 0 <= int(key) < limit:
+            raise lengths_raw.fail(key, f"keys must be marker ids 0..{limit - 1}")
+        lengths[int(key)] = lengths_raw.take(key, float, None, _positive)
+    mk.done()
+
+    boards: list[BoardConfig] = []
+    raw_boards = root.data.pop("boards", [])
+    if not isinstance(raw_boards, list):
+        raise ConfigError(f"{path}: boards must be an array of tables ([[boards]])")
+    seen_ids: dict[int, str] = {}
+    for index, raw in enumerate(raw_boards):
+        bd = _Table(raw, f"[[boards]] #{index + 1}", path)
+        name = bd.take("name", str, None)
+        if not name or not name.replace("_", "").replace("-", "").isalnum():
+            raise bd.fail("name", "is required: letters, digits, '-' and '_'")
+        bd.where = f"[[boards]] '{name}'"
+        kind = bd.take("kind", str, "grid", lambda v: None if v == "grid" else "only 'grid' is supported")
+        board = BoardConfig(
+            name=name,
+            kind=kind,
+            cols=bd.take("cols", int, _BOARD.cols, _in_range(1, 100)),
+            rows=bd.take("rows", int, _BOARD.rows, _in_range(1, 100)),
+            marker_length_m=bd.take("marker_length_m", float, _BOARD.marker_length_m, _positive),
+            separation_m=bd.take("separation_m", float, _BOARD.separation_m, _non_negative),
+            first_id=bd.take("first_id", int, _BOARD.first_id, _in_range(0, limit - 1)),
+            ids=bd.take_ids("ids", limit),
+        )
+        bd.done()
+        if board.ids and len(board.ids) != board.cols * board.rows:
+            raise bd.fail("ids", f"needs cols*rows = {board.cols * board.rows} ids, got {len(board.ids)}")
+        if not board.ids and board.first_id + board.cols * board.rows > limit:
+            raise bd.fail("first_id", f"ids {board.first_id}..{board.first_id + board.cols * board.rows - 1} "
+                          f"exceed the dictionary's {limit} markers")
+        if any(b.name == name for b in boards):
+            raise bd.fail("name", "duplicate board name")
+        for marker_id in board.marker_ids:
+            if marker_id in seen_ids:
+                raise bd.fail("ids", f"marker id {marker_id} is already used by board '{seen_ids[marker_id]}'")
+            seen_ids[marker_id] = name
+            if marker_id in lengths and abs(lengths[marker_id] - board.marker_length_m) > 1e-12:
+                raise bd.fail("marker_length_m", f"marker {marker_id} also has [markers.lengths_m] "
+                              f"{lengths[marker_id]:g}; a board marker's size is the board's")
+        boards.append(board)
+
+    ps = _Table(root.data.pop("pose", {}), "[pose]", path)
+    pose = PoseConfig(max_reproj_px=ps.take("max_reproj_px", float, defaults.pose.max_reproj_px, _positive))
+    ps.done()
+
+    rc = _Table(root.data.pop("recording", {}), "[recording]", path)
+    recording = RecordingConfig(
+        image_every=rc.take("image_every", int, defaults.recording.image_every, _in_range(0, 10_000)),
+        image_scale=rc.take("image_scale", float, defaults.recording.image_scale, _in_range(0.05, 1.0)),
+        jpeg_quality=rc.take("jpeg_quality", int, defaults.recording.jpeg_quality, _in_range(1, 100)),
+    )
+    rc.done()
+    root.done()
+
+    return TrackerConfig(
+        detector=DetectorConfig(dictionary=dictionary, corner_refinement=refinement),
+        markers=MarkersConfig(length_m=length_m, lengths_m=lengths, ids=ids),
+        boards=tuple(boards),
+        pose=pose,
+        recording=recording,
+        source=path,
+    )
+
+
+def load_config(path: str | os.PathLike[str] | None = None) -> TrackerConfig:
+    """Read a tracker TOML file (None: the built-in defaults, identical to ``configs/default.toml``)."""
+    if path is None:
+        return TrackerConfig()
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path}: not found")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"config file {path}: not UTF-8 text ({err.reason})") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"config file {path}: invalid TOML: {err}") from None
+    except OSError as err:
+        raise ConfigError(f"config file {path}: cannot read ({err.strerror})") from None
+    return parse_config(data, str(path))

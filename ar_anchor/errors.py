@@ -1,0 +1,33 @@
+"""Typed errors. Each carries one human-readable line naming the file or option at fault.
+
+The CLI maps :class:`InputError` (bad config, camera file, source, option) to exit code 2 and
+any other :class:`ArAnchorError` to exit code 1, printing only the message.
+"""
+
+from __future__ import annotations
+
+__all__ = ["ArAnchorError", "CameraError", "ConfigError", "InputError", "OutputError", "SourceError"]
+
+
+class ArAnchorError(Exception):
+    """Base class of all errors raised on purpose by ar_anchor."""
+
+
+class InputError(ArAnchorError, ValueError):
+    """The user gave us something we cannot use (exit code 2)."""
+
+
+class ConfigError(InputError):
+    """A tracker config file or value is invalid."""
+
+
+class CameraError(InputError):
+    """A camera calibration file is missing or malformed."""
+
+
+class SourceError(InputError):
+    """A frame source cannot be opened."""
+
+
+class OutputError(ArAnchorError):
+    """An output (recording, CSV, video) cannot be written."""

@@ -1,0 +1,159 @@
+"""Rigid-body geometry in OpenCV's conventions.
+
+A :class:`Pose` is ``b_from_a``: it maps points expressed in frame ``a`` into frame ``b``
+(``X_b = R X_a + t``). The tracker's main pose is ``camera_from_target``: ``t`` is the target
+origin seen from the camera, *not* the camera position; the camera centre in the target frame
+is ``C = -R^T t`` (:meth:`Pose.camera_centre`). Rotations travel as Rodrigues vectors
+(``rvec``, axis * angle in radians), metres throughout.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "Pose",
+    "angle_between_deg",
+    "look_at",
+    "marker_corners_in_marker",
+    "matrix_from_rvec",
+    "rvec_from_matrix",
+    "transform_points",
+]
+
+
+def _as_vec3(value: object, name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.shape != (3,):
+        raise ValueError(f"{name}: expected 3 values, got shape {np.shape(value)}")
+    return arr
+
+
+def matrix_from_rvec(rvec: np.ndarray) -> np.ndarray:
+    """Rodrigues vector (3,) -> rotation matrix (3, 3)."""
+    rotation, _ = cv2.Rodrigues(_as_vec3(rvec, "rvec"))
+    return rotation
+
+
+def rvec_from_matrix(rotation: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) -> Rodrigues vector (3,) with norm in [0, pi]."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    if rotation.shape != (3, 3):
+        raise ValueError(f"rotation: expected shape (3, 3), got {rotation.shape}")
+    rvec, _ = cv2.Rodrigues(rotation)
+    return rvec.reshape(3)
+
+
+def angle_between_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:
+    """Geodesic angle in degrees between two rotation matrices (0..180)."""
+    relative = np.asarray(rotation_a).T @ np.asarray(rotation_b)
+    cos_angle = np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos_angle)))
+
+
+def marker_corners_in_marker(length_m: float) -> np.ndarray:
+    """Corners TL, TR, BR, BL of a square marker in its own frame, shape (4, 3).
+
+    The marker frame is centred, x right, y up, z toward the viewer; this order is the one
+    ``SOLVEPNP_IPPE_SQUARE`` requires: ``(-h, h, 0), (h, h, 0), (h, -h, 0), (-h, -h, 0)``, h = side / 2.
+    """
+    h = length_m / 2.0
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+def transform_points(rotation: np.ndarray, translation: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply ``X' = R X + t`` to points of shape (N, 3)."""
+    return np.asarray(points, dtype=np.float64) @ np.asarray(rotation).T + np.asarray(translation)
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid transform ``b_from_a`` stored as Rodrigues vector and translation (metres).
+
+    Attributes
+    ----------
+    rvec : (3,) float64, axis-angle rotation, radians.
+    tvec : (3,) float64, translation, metres.
+    """
+
+    rvec: np.ndarray
+    tvec: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rvec", _as_vec3(self.rvec, "rvec"))
+        object.__setattr__(self, "tvec", _as_vec3(self.tvec, "tvec"))
+        self.rvec.flags.writeable = False
+        self.tvec.flags.writeable = False
+
+    @classmethod
+    def identity(cls) -> Pose:
+        return cls(np.zeros(3), np.zeros(3))
+
+    @classmethod
+    def from_matrix(cls, rotation: np.ndarray, translation: np.ndarray) -> Pose:
+        return cls(rvec_from_matrix(rotation), translation)
+
+    @classmethod
+    def from_homogeneous(cls, matrix: np.ndarray) -> Pose:
+        matrix = np.asarray(matrix, dtype=np.float64)
+        if matrix.shape != (4, 4):
+            raise ValueError(f"matrix: expected shape (4, 4), got {matrix.shape}")
+        return cls.from_matrix(matrix[:3, :3], matrix[:3, 3])
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """Rotation matrix R (3, 3)."""
+        return matrix_from_rvec(self.rvec)
+
+    def as_homogeneous(self) -> np.ndarray:
+        """4x4 matrix [[R, t], [0, 1]]."""
+        matrix = np.eye(4)
+        matrix[:3, :3] = self.rotation
+        matrix[:3, 3] = self.tvec
+        return matrix
+
+    def inverse(self) -> Pose:
+        """``a_from_b`` for this ``b_from_a``: R^T, -R^T t."""
+        rotation_t = self.rotation.T
+        return Pose.from_matrix(rotation_t, -rotation_t @ self.tvec)
+
+    def camera_centre(self) -> np.ndarray:
+        """For a ``camera_from_target`` pose: the camera centre in target coordinates, ``-R^T t``."""
+        return -self.rotation.T @ self.tvec
+
+    def compose(self, other: Pose) -> Pose:
+        """``c_from_a = self (c_from_b) ∘ other (b_from_a)``."""
+        rotation = self.rotation
+        return Pose.from_matrix(rotation @ other.rotation, rotation @ other.tvec + self.tvec)
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Map points (N, 3) from frame a to frame b."""
+        return transform_points(self.rotation, self.tvec, points)
+
+    def is_finite(self) -> bool:
+        return bool(np.all(np.isfinite(self.rvec)) and np.all(np.isfinite(self.tvec)))
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 1.0, 0.0)) -> Pose:
+    """``camera_from_world`` for an OpenCV camera (x right, y down, z forward) at ``eye`` looking at ``target``.
+
+    ``up`` is the world direction that should appear up in the image.
+    """
+    eye = _as_vec3(eye, "eye")
+    target = _as_vec3(target, "target")
+    forward = target - eye
+    norm = np.linalg.norm(forward)
+    if norm < 1e-12:
+        raise ValueError("look_at: eye and target coincide")
+    z_axis = forward / norm
+    x_axis = np.cross(z_axis, _as_vec3(up, "up"))
+    if np.linalg.norm(x_axis) < 1e-9:
+        raise ValueError("look_at: viewing direction is parallel to 'up'")
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(z_axis, x_axis)
+    world_from_camera_rotation = np.column_stack([x_axis, y_axis, z_axis])
+    rotation = world_from_camera_rotation.T
+    return Pose.from_matrix(rotation, -rotation @ eye)

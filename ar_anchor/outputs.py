@@ -1,0 +1,169 @@
+"""File outputs of a run: ``poses.csv`` (one row per frame per target) and ``summary.json``.
+
+Both are written so that an interrupted run leaves them complete and readable: the CSV is
+flushed after every frame, the summary is written to a temporary file and renamed.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from .errors import OutputError
+from .geometry import Pose, angle_between_deg
+from .tracker import FrameResult
+
+__all__ = ["POSES_CSV_HEADER", "PosesCsvWriter", "RunSummary", "write_json_atomic"]
+
+POSES_CSV_HEADER = (
+    "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
+    "raw_rvec_x,raw_rvec_y,raw_rvec_z,raw_tvec_x,raw_tvec_y,raw_tvec_z,reproj_px,ambiguity"
+).split(",")
+
+
+def _num(value: float | None) -> str:
+    """CSV number: empty for None / NaN, shortest round-tripping repr otherwise."""
+    if value is None or not math.isfinite(value):
+        return ""
+    return repr(float(value))
+
+
+def _pose_cells(pose: Pose | None) -> list[str]:
+    if pose is None:
+        return [""] * 6
+    return [_num(v) for v in (*pose.rvec, *pose.tvec)]
+
+
+class PosesCsvWriter:
+    """Writes ``poses.csv`` exactly as DESIGN.md specifies; flushed after each frame."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        try:
+            self._file: IO[str] | None = open(self.path, "w", newline="", encoding="utf-8")  # noqa: SIM115
+        except OSError as err:
+            raise OutputError(f"{self.path}: cannot write ({err.strerror})") from err
+        self._writer = csv.writer(self._file, lineterminator="\n")
+        self._writer.writerow(POSES_CSV_HEADER)
+        self.rows = 0
+
+    def write(self, result: FrameResult) -> None:
+        if self._file is None:
+            raise OutputError(f"{self.path}: already closed")
+        timestamp = f"{result.timestamp_ns * 1e-9:.9f}"
+        for name, target in result.targets.items():
+            self._writer.writerow(
+                [str(result.index), timestamp, name, target.state, *_pose_cells(target.pose), *_pose_cells(target.raw),
+                 _num(target.reproj_px), _num(target.ambiguity)]
+            )
+            self.rows += 1
+        try:
+            self._file.flush()
+        except OSError as err:
+            raise OutputError(f"{self.path}: write failed ({err.strerror})") from err
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> PosesCsvWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def write_json_atomic(path: str | os.PathLike[str], data: Mapping[str, Any]) -> None:
+    """Write JSON to ``path`` via a temporary file and rename (never a half-written file)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as err:
+        raise OutputError(f"{path}: cannot write ({err.strerror})") from err
+
+
+def _percentiles(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"median": None, "p95": None}
+    arr = np.asarray(values)
+    return {"median": float(np.median(arr)), "p95": float(np.percentile(arr, 95))}
+
+
+@dataclass
+class _TargetStats:
+    measured: int = 0
+    in_view: int = 0
+    measured_in_view: int = 0
+    rotation_errors_deg: list[float] = field(default_factory=list)
+    translation_errors_pct: list[float] = field(default_factory=list)
+
+
+class RunSummary:
+    """Accumulates per-target statistics over a run; :meth:`as_dict` is ``summary.json``."""
+
+    def __init__(self) -> None:
+        self.frames = 0
+        self.targets: dict[str, _TargetStats] = {}
+        self.has_truth = False
+        self.latency_ms: dict[str, list[float]] = {}
+
+    def add(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
+        self.frames += 1
+        for key, value in result.latency_ms.items():
+            self.latency_ms.setdefault(key, []).append(value)
+        if truth is not None:
+            self.has_truth = True
+            for name in truth:
+                self.targets.setdefault(name, _TargetStats()).in_view += 1
+        for name, target in result.targets.items():
+            stats = self.targets.setdefault(name, _TargetStats())
+            if not target.measured:
+                continue
+            stats.measured += 1
+            true_pose = truth.get(name) if truth is not None else None
+            if true_pose is None:
+                continue
+            stats.measured_in_view += 1
+            stats.rotation_errors_deg.append(angle_between_deg(target.pose.rotation, true_pose.rotation))
+            distance = float(np.linalg.norm(true_pose.tvec))
+            stats.translation_errors_pct.append(100.0 * float(np.linalg.norm(target.pose.tvec - true_pose.tvec)) / distance)
+
+    def as_dict(self, wall_time_s: float, **extra: Any) -> dict[str, Any]:
+        targets: dict[str, Any] = {}
+        for name in sorted(self.targets, key=_target_sort_key):
+            stats = self.targets[name]
+            entry: dict[str, Any] = {
+                "frames_measured": stats.measured,
+                "detection_rate": stats.measured / self.frames if self.frames else 0.0,
+            }
+            if self.has_truth:
+                entry["frames_in_view"] = stats.in_view
+                entry["detection_rate_in_view"] = stats.measured_in_view / stats.in_view if stats.in_view else None
+                entry["rotation_error_deg"] = _percentiles(stats.rotation_errors_deg)
+                entry["translation_error_pct"] = _percentiles(stats.translation_errors_pct)
+            targets[name] = entry
+        return {
+            "frames": self.frames,
+            "wall_time_s": wall_time_s,
+            "fps": self.frames / wall_time_s if wall_time_s > 0 else None,
+            "ground_truth": self.has_truth,
+            "latency_ms": {k: _percentiles(v) for k, v in self.latency_ms.items()},
+            "targets": targets,
+            **extra,
+        }
+
+
+def _target_sort_key(name: str) -> tuple[int, int, str]:
+    kind, _, ident = name.partition(":")
+    return (0 if kind == "board" else 1, int(ident) if ident.isdigit() else -1, ident)

@@ -1,0 +1,81 @@
+"""Frames and the contract every frame source meets."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..camera import CameraModel
+from ..errors import SourceError
+from ..geometry import Pose
+
+__all__ = ["Frame", "FrameSource", "SourceError"]
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image and when it was taken.
+
+    Attributes
+    ----------
+    image : (H, W, 3) uint8, BGR.
+    index : position in the stream, 0-based, strictly increasing.
+    timestamp_ns : capture time in nanoseconds (monotonic clock live, container time for
+        video, synthetic clock for renders).
+    truth : ground truth ``camera_from_target`` per target name (``marker:<id>``,
+        ``board:<name>``) for targets in view, when the source knows it (synthetic renders).
+    """
+
+    image: np.ndarray
+    index: int
+    timestamp_ns: int
+    truth: Mapping[str, Pose] | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        image = self.image
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(
+                f"Frame.image: expected (H, W, 3) uint8 BGR, got "
+                f"{getattr(image, 'shape', None)} {getattr(image, 'dtype', type(image).__name__)}"
+            )
+
+    @property
+    def timestamp_s(self) -> float:
+        return self.timestamp_ns * 1e-9
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height)."""
+        return self.image.shape[1], self.image.shape[0]
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """An iterator of :class:`Frame` and a context manager that releases the device or file.
+
+    End of stream ends the iteration. ``resolution`` is (width, height); ``camera`` is the
+    source's own calibration when it knows one (synthetic renders), else None.
+    """
+
+    @property
+    def resolution(self) -> tuple[int, int]: ...
+
+    @property
+    def camera(self) -> CameraModel | None: ...
+
+    @property
+    def frame_count(self) -> int | None: ...
+
+    def __iter__(self) -> Iterator[Frame]: ...
+
+    def __enter__(self) -> FrameSource: ...
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None: ...
+
+    def close(self) -> None: ...

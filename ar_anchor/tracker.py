@@ -1,0 +1,133 @@
+"""One frame's trip through the pipeline: detect -> solve -> (filter) -> :class:`FrameResult`.
+
+The temporal filter that resolves the planar flip comes later; until then the output pose of a
+marker is its lower-error IPPE solution and its state is ``tracked``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .camera import CameraModel
+from .config import TrackerConfig
+from .detection import Detector, MarkerDetections
+from .geometry import Pose
+from .pose import MarkerPose, PoseFailure, PoseHypothesis, solve_marker
+from .sources.base import Frame
+
+__all__ = ["FrameResult", "TargetResult", "Tracker"]
+
+log = logging.getLogger(__name__)
+
+STATES = ("tracked", "ambiguous", "predicted")
+
+
+@dataclass(frozen=True)
+class TargetResult:
+    """What the tracker says about one target (``marker:<id>`` or ``board:<name>``) in one frame.
+
+    Attributes
+    ----------
+    pose : output ``camera_from_target`` (what is rendered).
+    raw : this frame's plain per-frame solution before filtering (None when not measured).
+    state : ``tracked`` | ``ambiguous`` | ``predicted``.
+    reproj_px : RMS reprojection error of ``pose`` on this frame's corners (NaN when predicted).
+    ambiguity : error ratio worse / better of the two IPPE solutions (NaN for boards or unknown).
+    hypotheses : the validated per-frame solutions, lower error first.
+    corners_in_image : (N, 4, 2) corners used this frame.
+    """
+
+    target: str
+    state: str
+    pose: Pose
+    raw: Pose | None
+    reproj_px: float
+    ambiguity: float
+    length_m: float
+    hypotheses: tuple[PoseHypothesis, ...] = ()
+    corners_in_image: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.state not in STATES:
+            raise ValueError(f"state must be one of {STATES}, got {self.state!r}")
+
+    @property
+    def measured(self) -> bool:
+        return self.state != "predicted"
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Everything the tracker found in one frame."""
+
+    index: int
+    timestamp_ns: int
+    detections: MarkerDetections
+    targets: dict[str, TargetResult]
+    failures: tuple[PoseFailure, ...] = ()
+    latency_ms: dict[str, float] = field(default_factory=dict)
+    camera: CameraModel | None = None
+
+
+class Tracker:
+    """Stateful per-stream tracker. Feed frames in order to :meth:`process`.
+
+    Example
+    -------
+    >>> tracker = Tracker(load_config(), CameraModel.from_yaml("configs/camera_synthetic.yml"))
+    >>> result = tracker.process(frame)        # doctest: +SKIP
+    >>> result.targets["marker:0"].pose.tvec   # doctest: +SKIP
+    """
+
+    def __init__(self, config: TrackerConfig, camera: CameraModel) -> None:
+        self.config = config
+        self.camera = camera
+        self.detector = Detector(config.detector)
+        self._cameras: dict[tuple[int, int], CameraModel] = {camera.size: camera}
+
+    def camera_for(self, size: tuple[int, int]) -> CameraModel:
+        """The calibration scaled to a frame size (warns once per new size)."""
+        if size not in self._cameras:
+            self._cameras[size] = self.camera.scaled_to(*size)
+        return self._cameras[size]
+
+    def process(self, frame: Frame) -> FrameResult:
+        camera = self.camera_for(frame.size)
+        t0 = time.perf_counter()
+        detections = self.detector.detect(frame.image)
+        t1 = time.perf_counter()
+        targets: dict[str, TargetResult] = {}
+        failures: list[PoseFailure] = []
+        for marker_id, corners in zip(detections.ids.tolist(), detections.corners):
+            if not self.config.tracks_marker(marker_id):
+                continue
+            solved = solve_marker(
+                marker_id, corners, self.config.marker_length(marker_id), camera, self.config.pose.max_reproj_px
+            )
+            if isinstance(solved, PoseFailure):
+                failures.append(solved)
+                continue
+            targets[f"marker:{marker_id}"] = _marker_result(solved)
+        t2 = time.perf_counter()
+        latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3}
+        return FrameResult(frame.index, frame.timestamp_ns, detections, targets, tuple(failures), latency, camera)
+
+
+def _marker_result(solved: MarkerPose) -> TargetResult:
+    best = solved.best
+    return TargetResult(
+        target=f"marker:{solved.marker_id}",
+        state="tracked",
+        pose=best.pose,
+        raw=best.pose,
+        reproj_px=best.reproj_px,
+        ambiguity=solved.ambiguity if math.isfinite(solved.ambiguity) else math.nan,
+        length_m=solved.length_m,
+        hypotheses=solved.hypotheses,
+        corners_in_image=solved.corners_in_image[None],
+    )

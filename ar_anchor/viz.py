@@ -1,0 +1,213 @@
+"""Everything rerun: the only module that calls ``rerun``.
+
+Entity tree
+-----------
+``camera/image``                  the frame (JPEG), with ``markers`` outlines + ids and ``corners``
+``world``                         the anchor target's frame (the first target that gets a pose)
+``world/camera``                  ``world_from_camera`` (so the camera centre is ``C = -R^T t``) + ``Pinhole``
+``world/targets/<target>``        ``world_from_target`` of every other target, drawn as its square + axes
+``world/truth_camera``            the true camera centre (synthetic sources)
+``metrics/reproj_px/<target>``    RMS reprojection error of the output pose
+``metrics/ambiguity/<target>``    IPPE error ratio (worse / better; near 1 = ambiguous)
+``metrics/rotation_error_deg/<target>``  against ground truth, when known
+``metrics/latency/<stage>``       per-stage time, milliseconds
+
+Timelines: ``frame`` (sequence) and ``time`` (seconds since the stream's start).
+Rerun places pixel *corners* at integers, OpenCV pixel *centres*: 2D positions are shifted by
+half a pixel here so overlays sit exactly on the image.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from .camera import CameraModel
+from .config import RecordingConfig
+from .errors import OutputError
+from .geometry import Pose, angle_between_deg, marker_corners_in_marker
+from .sources.base import Frame
+from .tracker import FrameResult
+
+__all__ = ["RerunRecorder", "default_blueprint"]
+
+log = logging.getLogger(__name__)
+
+_STATE_COLOURS = {"tracked": (40, 220, 80), "ambiguous": (250, 190, 30), "predicted": (120, 120, 255)}
+_FAILED_COLOUR = (255, 60, 60)
+
+
+def entity_name(target: str) -> str:
+    """``marker:3`` -> ``marker_3`` (a single entity path part)."""
+    return target.replace(":", "_")
+
+
+def default_blueprint() -> rrb.Blueprint:
+    """Image, 3D scene and plots side by side."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="camera/image", name="Camera"),
+            rrb.Spatial3DView(origin="world", name="3D scene"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="metrics/reproj_px", name="Reprojection error (px)"),
+                rrb.TimeSeriesView(origin="metrics/ambiguity", name="IPPE ambiguity ratio"),
+                rrb.TimeSeriesView(origin="metrics/rotation_error_deg", name="Rotation error vs truth (deg)"),
+                rrb.TimeSeriesView(origin="metrics/latency", name="Latency (ms)"),
+            ),
+            column_shares=[3, 3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+class RerunRecorder:
+    """Logs frames and tracker results to an ``.rrd`` file and/or a spawned viewer."""
+
+    def __init__(
+        self,
+        rrd_path: str | os.PathLike[str] | None,
+        *,
+        camera: CameraModel,
+        settings: RecordingConfig | None = None,
+        spawn: bool = False,
+        recording_name: str = "ar_anchor",
+    ) -> None:
+        self.settings = settings or RecordingConfig()
+        self.camera = camera
+        self.rrd_path = Path(rrd_path) if rrd_path is not None else None
+        self.rec = rr.RecordingStream("ar_anchor")
+        sinks: list[rr.FileSink | rr.GrpcSink] = []
+        if self.rrd_path is not None:
+            try:
+                self.rrd_path.touch()
+            except OSError as err:
+                raise OutputError(f"{self.rrd_path}: cannot write ({err.strerror})") from err
+            sinks.append(rr.FileSink(str(self.rrd_path)))
+        if spawn:
+            rr.spawn(connect=False, recording=self.rec)
+            sinks.append(rr.GrpcSink())
+        if sinks:
+            self.rec.set_sinks(*sinks, default_blueprint=default_blueprint())
+        self.rec.send_recording_name(recording_name)
+        self.anchor: str | None = None
+        self._static_targets: set[str] = set()
+        self._log_static_camera(camera)
+
+    # ------------------------------------------------------------------ static
+    def _log_static_camera(self, camera: CameraModel) -> None:
+        self.rec.log(
+            "world/camera",
+            rr.Pinhole(
+                image_from_camera=np.asarray(camera.camera_matrix),
+                resolution=[camera.width, camera.height],
+                camera_xyz=rr.ViewCoordinates.RDF,
+                image_plane_distance=0.1,
+            ),
+            static=True,
+        )
+
+    def _log_static_target(self, name: str, length_m: float, is_anchor: bool) -> None:
+        path = "world" if is_anchor else f"world/targets/{entity_name(name)}"
+        square = np.vstack([marker_corners_in_marker(length_m), marker_corners_in_marker(length_m)[:1]])
+        self.rec.log(f"{path}/outline", rr.LineStrips3D([square], colors=[(230, 230, 230)], radii=[length_m / 60]),
+                     static=True)
+        self.rec.log(f"{path}/axes", rr.TransformAxes3D(axis_length=length_m * 0.75), static=True)
+        self.rec.log(f"{path}/label", rr.Points3D([[0, 0, 0]], labels=[name], radii=[length_m / 40]), static=True)
+
+    # ------------------------------------------------------------------ per frame
+    def log_frame(self, frame: Frame, result: FrameResult) -> None:
+        rec = self.rec
+        rec.set_time("frame", sequence=frame.index)
+        rec.set_time("time", duration=frame.timestamp_ns * 1e-9)
+        every = self.settings.image_every
+        scale = self.settings.image_scale
+        if every and frame.index % every == 0:
+            image = frame.image
+            if scale != 1.0:
+                size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
+            if ok:
+                rec.log("camera/image", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+        self._log_detections(result, scale)
+        self._log_world(result, frame.truth)
+        for stage, ms in result.latency_ms.items():
+            rec.log(f"metrics/latency/{stage.removesuffix('_ms')}", rr.Scalars(ms))
+
+    def _log_detections(self, result: FrameResult, scale: float) -> None:
+        def to_rerun(pixels: np.ndarray) -> np.ndarray:
+            return (np.asarray(pixels, np.float64) + 0.5) * scale
+
+        strips, colours, labels = [], [], []
+        failed = {f.marker_id for f in result.failures}
+        for marker_id, corners in zip(result.detections.ids.tolist(), result.detections.corners):
+            target = result.targets.get(f"marker:{marker_id}")
+            colour = _STATE_COLOURS[target.state] if target else (_FAILED_COLOUR if marker_id in failed else (160, 160, 160))
+            strips.append(to_rerun(np.vstack([corners, corners[:1]])))
+            colours.append(colour)
+            labels.append(str(marker_id))
+        self.rec.log("camera/image/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=[1.0]))
+        corners = result.detections.corners.reshape(-1, 2)
+        self.rec.log("camera/image/corners", rr.Points2D(to_rerun(corners), radii=[1.5], colors=[(255, 0, 255)]))
+
+    def _choose_anchor(self, result: FrameResult) -> None:
+        if self.anchor is not None or not result.targets:
+            return
+        names = sorted(result.targets, key=lambda n: (not n.startswith("board:"), len(n), n))
+        self.anchor = names[0]
+        anchor = result.targets[self.anchor]
+        up = rr.ViewCoordinates.RIGHT_HAND_Y_DOWN if self.anchor.startswith("board:") else rr.ViewCoordinates.RIGHT_HAND_Y_UP
+        self.rec.log("world", up, static=True)
+        self._log_static_target(self.anchor, anchor.length_m, is_anchor=True)
+        self._static_targets.add(self.anchor)
+        log.info("rerun 3D view anchored on %s", self.anchor)
+
+    def _log_world(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
+        rec = self.rec
+        self._choose_anchor(result)
+        for name, target in result.targets.items():
+            part = entity_name(name)
+            if math.isfinite(target.reproj_px):
+                rec.log(f"metrics/reproj_px/{part}", rr.Scalars(target.reproj_px))
+            if math.isfinite(target.ambiguity):
+                rec.log(f"metrics/ambiguity/{part}", rr.Scalars(target.ambiguity))
+            if truth is not None and name in truth:
+                error = angle_between_deg(target.pose.rotation, truth[name].rotation)
+                rec.log(f"metrics/rotation_error_deg/{part}", rr.Scalars(error))
+        if self.anchor is None:
+            return
+        anchor = result.targets.get(self.anchor)
+        if truth is not None and self.anchor in truth:
+            rec.log("world/truth_camera", rr.Points3D([truth[self.anchor].camera_centre()], colors=[(255, 255, 255)],
+                                                       radii=[0.005], labels=["true camera"]))
+        if anchor is None:
+            return
+        world_from_camera = anchor.pose.inverse()
+        rec.log("world/camera", rr.Transform3D(translation=world_from_camera.tvec, mat3x3=world_from_camera.rotation))
+        for name, target in result.targets.items():
+            if name == self.anchor:
+                continue
+            if name not in self._static_targets:
+                self._log_static_target(name, target.length_m, is_anchor=False)
+                self._static_targets.add(name)
+            world_from_target = world_from_camera.compose(target.pose)
+            rec.log(f"world/targets/{entity_name(name)}",
+                    rr.Transform3D(translation=world_from_target.tvec, mat3x3=world_from_target.rotation))
+
+    def log_message(self, text: str, level: str = "INFO") -> None:
+        self.rec.log("log", rr.TextLog(text, level=level))
+
+    def close(self) -> None:
+        """Flush everything to the sinks and close the file (the .rrd is complete afterwards)."""
+        try:
+            self.rec.flush()
+        finally:
+            self.rec.disconnect()
