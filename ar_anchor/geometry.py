@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 __all__ = [
     "Pose",
@@ -39,12 +40,17 @@ def matrix_from_rvec(rvec: np.ndarray) -> np.ndarray:
 
 
 def rvec_from_matrix(rotation: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) -> Rodrigues vector (3,) with norm in [0, pi]."""
+    """Rotation matrix (3, 3) -> Rodrigues vector (3,) with norm in [0, pi].
+
+    Uses scipy's quaternion-based log map: ``cv2.Rodrigues`` rounds rotations below about
+    1e-5 rad to exactly zero, which would lose small increments when poses are composed.
+    """
     rotation = np.asarray(rotation, dtype=np.float64)
     if rotation.shape != (3, 3):
         raise ValueError(f"rotation: expected shape (3, 3), got {rotation.shape}")
-    rvec, _ = cv2.Rodrigues(rotation)
-    return rvec.reshape(3)
+    if not np.all(np.isfinite(rotation)):
+        return np.full(3, np.nan)
+    return Rotation.from_matrix(rotation).as_rotvec()
 
 
 def angle_between_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:

@@ -97,8 +97,14 @@ def check_pose(
     points_in_image: np.ndarray,
     camera: CameraModel,
     max_reproj_px: float,
+    *,
+    require_front: bool = True,
 ) -> tuple[float, str | None]:
-    """Validate a solver result. Returns (RMS reprojection error, reason it is rejected or None)."""
+    """Validate a solver result. Returns (RMS reprojection error, reason it is rejected or None).
+
+    ``require_front``: the target's +z side faces the camera (a printed marker is opaque; its
+    frame's z points toward the viewer), i.e. the camera centre has z > 0 in the target frame.
+    """
     if not pose.is_finite():
         return math.nan, "non-finite rvec/tvec"
     angle = float(np.linalg.norm(pose.rvec))
@@ -109,6 +115,8 @@ def check_pose(
     depth = pose.apply(points_in_target)[:, 2]
     if np.any(depth <= 1e-6):
         return math.nan, "target (partly) behind the camera"
+    if require_front and pose.camera_centre()[2] <= 0:
+        return math.nan, "target seen from behind (camera on the back side of its plane)"
     error = reprojection_rms(pose, points_in_target, points_in_image, camera)
     if not math.isfinite(error) or error > max_reproj_px:
         return error, f"reprojection error {error:.3g} px > {max_reproj_px:g} px"

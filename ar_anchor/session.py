@@ -73,7 +73,8 @@ def run_session(
                 result: FrameResult = tracker.process(frame)
                 csv_writer.write(result)
                 recorder.log_frame(frame, result)
-                summary.add(result, frame.truth)
+                truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
+                summary.add(result, truth)
                 if progress is not None:
                     progress(summary.frames, total)
         status = "completed"

@@ -96,6 +96,14 @@ class Tracker:
             self._cameras[size] = self.camera.scaled_to(*size)
         return self._cameras[size]
 
+    def reports(self, target: str) -> bool:
+        """Does this tracker output poses for ``target`` (``marker:<id>`` / ``board:<name>``)?
+
+        Boards are detected through their markers; their joint pose is not solved yet.
+        """
+        kind, _, ident = target.partition(":")
+        return kind == "marker" and ident.isdigit() and self.config.tracks_marker(int(ident))
+
     def process(self, frame: Frame) -> FrameResult:
         camera = self.camera_for(frame.size)
         t0 = time.perf_counter()
