@@ -1,4 +1,36 @@
-"""ar_anchor: real-time fiducial-marker AR tracking."""
+"""ar_anchor: real-time fiducial-marker AR tracking.
+
+The public API is importable from the top level (loaded lazily, so ``ar-anchor --help`` stays fast)::
+
+    from ar_anchor import CameraModel, Tracker, load_config
+"""
+
 from __future__ import annotations
 
+import importlib
+from typing import Any
+
 __version__ = "0.1.0"
+
+_EXPORTS = {
+    "CameraModel": "ar_anchor.camera",
+    "Frame": "ar_anchor.sources.base",
+    "FrameResult": "ar_anchor.tracker",
+    "FrameSource": "ar_anchor.sources.base",
+    "Pose": "ar_anchor.geometry",
+    "SyntheticScene": "ar_anchor.sources.synthetic",
+    "SyntheticSource": "ar_anchor.sources.synthetic",
+    "TargetResult": "ar_anchor.tracker",
+    "Tracker": "ar_anchor.tracker",
+    "TrackerConfig": "ar_anchor.config",
+    "demo_scene": "ar_anchor.sources.synthetic",
+    "load_config": "ar_anchor.config",
+}
+
+__all__ = [*_EXPORTS, "__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'ar_anchor' has no attribute {name!r}")

@@ -97,17 +97,23 @@ class CameraModel:
             raise CameraError(f"camera file {path}: file is empty")
         try:
             storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-        except cv2.error as err:
-            raise CameraError(f"camera file {path}: not valid OpenCV YAML/XML ({_first_line(err)})") from err
+        except (cv2.error, SystemError) as err:  # OpenCV 5's binding wraps parse errors in SystemError
+            raise CameraError(f"camera file {path}: not valid OpenCV YAML/XML ({_first_line(err)})") from None
         try:
             if not storage.isOpened():
                 raise CameraError(f"camera file {path}: cannot be parsed as OpenCV FileStorage")
+            if not storage.root().isMap():
+                raise CameraError(f"camera file {path}: expected key: value pairs at the top level")
             matrix = _read_mat(storage, "camera_matrix", path, required=True)
             dist = _read_mat(storage, "distortion_coefficients", path, required=False)
             width = _read_int(storage, "image_width", path)
             height = _read_int(storage, "image_height", path)
+        except (cv2.error, SystemError) as err:
+            raise CameraError(f"camera file {path}: unreadable content ({_first_line(err)})") from None
         finally:
             storage.release()
+        if matrix is not None and matrix.size == 9:
+            matrix = matrix.reshape(3, 3)
         try:
             return cls(matrix, np.zeros(0) if dist is None else dist, width, height)
         except CameraError as err:
@@ -191,6 +197,8 @@ def _read_mat(storage: cv2.FileStorage, key: str, path: Path, *, required: bool)
     if node.isSeq():
         values = [node.at(i).real() for i in range(node.size())]
         return np.asarray(values, dtype=np.float64)
+    if not node.isMap():
+        raise CameraError(f"camera file {path}: '{key}' is not an OpenCV matrix (!!opencv-matrix)")
     mat = node.mat()
     if mat is None:
         raise CameraError(f"camera file {path}: '{key}' is not an OpenCV matrix (!!opencv-matrix)")

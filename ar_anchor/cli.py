@@ -64,6 +64,15 @@ def _non_negative_float(text: str) -> float:
 # ---------------------------------------------------------------------------- parser
 
 
+def _add_common_options(parser: argparse.ArgumentParser, *, defaults: bool) -> None:
+    """-v / -q, accepted before and after the command name (the command's copy sets no default,
+    so ``ar-anchor -q demo`` is not undone by the subparser)."""
+    parser.add_argument("-v", "--verbose", action="count", default=0 if defaults else argparse.SUPPRESS,
+                        help="more log output (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", default=False if defaults else argparse.SUPPRESS,
+                        help="no progress bar or summary table")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ar-anchor",
@@ -71,8 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
         allow_abbrev=False,
     )
     parser.add_argument("--version", action="version", version=f"ar-anchor {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary table")
+    _add_common_options(parser, defaults=True)
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     demo = commands.add_parser(
@@ -82,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
         "to far), track it, and write poses.csv, summary.json and recording.rrd.",
         allow_abbrev=False,
     )
+    _add_common_options(demo, defaults=False)
     demo.add_argument("--frames", type=_int_at_least(1), default=300, help="frames to render (default 300)")
     demo.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
     demo.add_argument("--seed", type=_int_at_least(0), default=0, help="seed of scene texture and noise (default 0)")

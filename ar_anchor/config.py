@@ -2,7 +2,11 @@
 
 Every unknown key and every bad value is a :class:`~ar_anchor.errors.ConfigError` whose message
 names the file and the key, e.g. ``configs/x.toml: [markers] length_m: must be > 0, got -1``.
-The defaults of these dataclasses are exactly ``configs/default.toml`` (a test keeps them equal).
+
+``TrackerConfig()`` (what runs without ``--config``) is exactly ``configs/default.toml`` (a test
+keeps them equal). In a config file every scalar key is optional and takes that default, but the
+lists are what the file says: a file without ``[[boards]]`` has no boards, one without
+``[markers.lengths_m]`` has no per-id sizes.
 """
 
 from __future__ import annotations
@@ -259,7 +263,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     lengths_raw = _Table(mk.data.pop("lengths_m", {}), "[markers.lengths_m]", path)
     lengths: dict[int, float] = {}
     for key in list(lengths_raw.data):
-        if not key.isdigit() or not 0 <= int(key) < limit:
+        if not (key.isascii() and key.isdigit()) or not 0 <= int(key) < limit:
             raise lengths_raw.fail(key, f"keys must be marker ids 0..{limit - 1}")
         lengths[int(key)] = lengths_raw.take(key, float, None, _positive)
     mk.done()
