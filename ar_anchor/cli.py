@@ -41,24 +41,21 @@ def _int_at_least(minimum: int):
     return parse
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return value
+def _float_above(minimum: float, *, inclusive: bool):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (math.isfinite(value) and (value >= minimum if inclusive else value > minimum)):
+            raise argparse.ArgumentTypeError(f"must be a number {'>=' if inclusive else '>'} {minimum:g}, got {text!r}")
+        return value
+
+    return parse
 
 
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}")
-    return value
+_positive_float = _float_above(0.0, inclusive=False)
+_non_negative_float = _float_above(0.0, inclusive=True)
 
 
 # ---------------------------------------------------------------------------- parser
@@ -141,6 +138,7 @@ class _Progress:
 def cmd_demo(args: argparse.Namespace) -> int:
     from .camera import CameraModel
     from .config import load_config
+    from .errors import SourceError
     from .session import run_session
     from .sources.synthetic import SyntheticSource, Trajectory, demo_scene
     from .tracker import Tracker
@@ -150,8 +148,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.trajectory == "sweep" and args.far < args.near:
         raise InputError(f"--far {args.far} must not be below --near {args.near}")
     trajectory = Trajectory(kind=args.trajectory, near_m=args.near, far_m=args.far, look_at=(-0.01, 0.0, 0.0))
-    scene = demo_scene(config, camera, frames=args.frames, seed=args.seed, trajectory=trajectory,
-                       noise_sigma=args.noise, blur_sigma=args.blur)
+    try:
+        scene = demo_scene(config, camera, frames=args.frames, seed=args.seed, trajectory=trajectory,
+                           noise_sigma=args.noise, blur_sigma=args.blur)
+    except SourceError as err:
+        raise SourceError(f"--camera {args.camera}: {err}") from None
     out_dir = args.out or _default_out("demo")
     progress = _Progress(not args.quiet, "demo")
     try:

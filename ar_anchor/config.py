@@ -109,6 +109,14 @@ class BoardConfig:
     def target(self) -> str:
         return f"board:{self.name}"
 
+    @property
+    def size_m(self) -> tuple[float, float]:
+        """(width, height) of the marker grid in metres, outer marker edges."""
+        return (
+            self.cols * self.marker_length_m + (self.cols - 1) * self.separation_m,
+            self.rows * self.marker_length_m + (self.rows - 1) * self.separation_m,
+        )
+
 
 @dataclass(frozen=True)
 class PoseConfig:

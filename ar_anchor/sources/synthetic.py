@@ -202,13 +202,11 @@ def demo_scene(
     boards = []
     y = 0.0
     for board in config.boards:
-        width = board.cols * board.marker_length_m + (board.cols - 1) * board.separation_m
-        height = board.rows * board.marker_length_m + (board.rows - 1) * board.separation_m
+        height = board.size_m[1]
         # board frame: origin top-left, y down, z into the wall -> rotate 180 degrees about x.
         top_left = np.array([0.04, y + height / 2.0, 0.0])
         boards.append(PlacedBoard(board, Pose.from_matrix(_FLIP_YZ, top_left)))
         y -= height + 0.03
-        del width
     return SyntheticScene(
         camera=camera,
         dictionary=config.detector.dictionary,
@@ -324,9 +322,7 @@ class _Renderer:
             self.groups.append((marker.world_from_target.tvec, [quad]))
         for placed in scene.boards:
             board = placed.board
-            step = board.marker_length_m + board.separation_m
-            width = board.cols * step - board.separation_m
-            height = board.rows * step - board.separation_m
+            width, height = board.size_m
             margin = max(board.separation_m, board.marker_length_m / 4)
             quads = [_paper_quad(placed.world_from_target, -margin, -margin, width + margin, height + margin)]
             quiet = min(board.marker_length_m / (dictionary.markerSize + 2), board.separation_m / 2)
