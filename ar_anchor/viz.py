@@ -51,14 +51,27 @@ def entity_name(target: str) -> str:
 
 
 def default_blueprint() -> rrb.Blueprint:
-    """Image, 3D scene and plots side by side."""
+    """Image, 3D scene and plots side by side.
+
+    The 3D eye starts in front of the anchor (a marker frame: y up, z toward the viewer), a
+    decimetre grid gives scale; the ambiguity plot shows 1..5 (values near 1 are the ambiguous
+    ones; the data itself is not clipped).
+    """
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial2DView(origin="camera/image", name="Camera"),
-            rrb.Spatial3DView(origin="world", name="3D scene"),
+            rrb.Spatial3DView(
+                origin="world",
+                name="3D scene",
+                line_grid=rrb.LineGrid3D(visible=True, spacing=0.1),
+                eye_controls=rrb.EyeControls3D(
+                    kind=rrb.Eye3DKind.Orbital, position=(0.9, 0.7, 1.8), look_target=(0.0, 0.0, 0.4), eye_up=(0, 1, 0)
+                ),
+            ),
             rrb.Vertical(
                 rrb.TimeSeriesView(origin="metrics/reproj_px", name="Reprojection error (px)"),
-                rrb.TimeSeriesView(origin="metrics/ambiguity", name="IPPE ambiguity ratio"),
+                rrb.TimeSeriesView(origin="metrics/ambiguity", name="IPPE ambiguity ratio",
+                                   axis_y=rrb.ScalarAxis(range=(1.0, 5.0))),
                 rrb.TimeSeriesView(origin="metrics/rotation_error_deg", name="Rotation error vs truth (deg)"),
                 rrb.TimeSeriesView(origin="metrics/latency", name="Latency (ms)"),
             ),
