@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -207,7 +208,20 @@ def _setup_logging(verbosity: int) -> None:
     root.propagate = False
 
 
+def _interrupt_on_sigterm() -> None:
+    """SIGTERM ends a run like Ctrl-C: outputs are closed and stay valid."""
+
+    def handler(signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    try:
+        signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread (embedded use): leave signals alone
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    _interrupt_on_sigterm()
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -104,8 +105,7 @@ class RerunRecorder:
             except OSError as err:
                 raise OutputError(f"{self.rrd_path}: cannot write ({err.strerror})") from err
             sinks.append(rr.FileSink(str(self.rrd_path)))
-        if spawn:
-            rr.spawn(connect=False, recording=self.rec)
+        if spawn and self._spawn_viewer():
             sinks.append(rr.GrpcSink())
         if sinks:
             self.rec.set_sinks(*sinks, default_blueprint=default_blueprint())
@@ -113,6 +113,21 @@ class RerunRecorder:
         self.anchor: str | None = None
         self._static_targets: set[str] = set()
         self._log_static_camera(camera)
+
+    def _spawn_viewer(self) -> bool:
+        """Start a rerun viewer (the one installed beside this Python first); warn and go on without it."""
+        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            log.warning("--spawn: no display (DISPLAY / WAYLAND_DISPLAY unset), so no rerun viewer; recording to "
+                        "file only (open it later with: rerun %s)", self.rrd_path)
+            return False
+        beside = Path(sys.executable).with_name("rerun")
+        try:
+            rr.spawn(connect=False, recording=self.rec, executable_path=str(beside) if beside.exists() else None)
+        except Exception as err:  # no viewer binary, no display, port taken: the recording still goes on
+            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            log.warning("--spawn: could not start the rerun viewer (%s); recording to file only", reason)
+            return False
+        return True
 
     # ------------------------------------------------------------------ static
     def _log_static_camera(self, camera: CameraModel) -> None:
@@ -218,9 +233,12 @@ class RerunRecorder:
     def log_message(self, text: str, level: str = "INFO") -> None:
         self.rec.log("log", rr.TextLog(text, level=level))
 
-    def close(self) -> None:
-        """Flush everything to the sinks and close the file (the .rrd is complete afterwards)."""
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Flush everything to the sinks and close the file (the .rrd is complete afterwards).
+
+        The flush is bounded: a viewer that went away must not hang the end of a run.
+        """
         try:
-            self.rec.flush()
+            self.rec.flush(timeout_sec=timeout_s)
         finally:
             self.rec.disconnect()
