@@ -151,21 +151,22 @@ class CameraModel:
     def scaled_to(self, width: int, height: int) -> CameraModel:
         """Intrinsics for the same lens at another resolution (pixel-centre convention kept).
 
-        Logs a warning: calibrate at the resolution you track at when you can.
+        Logs a warning (calibrate at the resolution you track at when you can). A different aspect
+        ratio is a :class:`CameraError`: the stream is then cropped or stretched in a way the
+        calibration cannot know.
         """
         if (width, height) == self.size:
             return self
         sx, sy = width / self.width, height / self.height
-        if abs(sx - sy) > 1e-3 * max(sx, sy):
-            log.warning(
-                "camera calibrated at %dx%d used at %dx%d: aspect ratio changes, intrinsics scaled anyway",
-                self.width, self.height, width, height,
+        if abs(sx - sy) > 0.01 * max(sx, sy):
+            raise CameraError(
+                f"camera calibrated at {self.width}x{self.height} (aspect {self.width / self.height:.3f}) cannot be "
+                f"used for {width}x{height} frames (aspect {width / height:.3f}): calibrate at this resolution"
             )
-        else:
-            log.warning(
-                "camera calibrated at %dx%d used at %dx%d: scaling intrinsics by %.4g",
-                self.width, self.height, width, height, sx,
-            )
+        log.warning(
+            "camera calibrated at %dx%d used at %dx%d: scaling intrinsics by %.4g",
+            self.width, self.height, width, height, sx,
+        )
         k = np.array(self.camera_matrix)
         k[0, 0] *= sx
         k[0, 1] *= sx

@@ -92,9 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--frames", type=_int_at_least(1), default=300, help="frames to render (default 300)")
     demo.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
     demo.add_argument("--seed", type=_int_at_least(0), default=0, help="seed of scene texture and noise (default 0)")
-    demo.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
     demo.add_argument("--camera", type=Path, default=None,
                       help="camera YAML to render with (default: configs/camera_synthetic.yml values)")
+    _add_tracker_options(demo)
     demo.add_argument("--trajectory", choices=("sweep", "orbit", "static"), default="sweep",
                       help="camera path (default sweep: near to far)")
     demo.add_argument("--near", type=_positive_float, default=0.35, help="nearest camera distance, metres")
@@ -104,7 +104,65 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", type=Path, default=None, help="output directory (default recordings/demo-<time>/)")
     demo.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
     demo.set_defaults(func=cmd_demo)
+
+    replay = commands.add_parser(
+        "replay",
+        help="track a video file, an image folder or a glob of images",
+        description="Track every frame of a video file (container timestamps), an image folder or a glob "
+        "(natural order, --fps timestamps) and write poses.csv, summary.json and recording.rrd.",
+        allow_abbrev=False,
+    )
+    _add_common_options(replay, defaults=False)
+    replay.add_argument("source", metavar="SOURCE", help="video file, image folder, or a quoted glob such as 'shots/*.png'")
+    replay.add_argument("--camera", type=Path, default=None,
+                        help="camera YAML (default: camera.yml beside SOURCE, as `live --record` writes it)")
+    _add_tracker_options(replay)
+    replay.add_argument("--fps", type=_positive_float, default=30.0, help="frame rate of image folders (default 30)")
+    replay.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
+    replay.add_argument("--out", type=Path, default=None, help="output directory (default recordings/replay-<time>/)")
+    replay.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
+    replay.set_defaults(func=cmd_replay)
+
+    live = commands.add_parser(
+        "live",
+        help="track a V4L2 webcam (or --device synthetic) live; view it in rerun",
+        description="Track a live camera. The live view is the rerun viewer (--spawn, or --connect to a running "
+        "one); outputs are written as the run goes and finalised on Ctrl-C.",
+        allow_abbrev=False,
+    )
+    _add_common_options(live, defaults=False)
+    live.add_argument("--device", default="/dev/video0",
+                      help="V4L2 device path or index, or 'synthetic' for the demo scene in real time (default /dev/video0)")
+    live.add_argument("--camera", type=Path, default=None, help="camera YAML (required for a real camera)")
+    _add_tracker_options(live)
+    live.add_argument("--width", type=_int_at_least(1), default=None, help="requested frame width")
+    live.add_argument("--height", type=_int_at_least(1), default=None, help="requested frame height")
+    live.add_argument("--fps", type=_positive_float, default=None, help="requested frame rate (synthetic: 30)")
+    live.add_argument("--fourcc", default="MJPG", help="requested pixel format (default MJPG, when offered)")
+    live.add_argument("--queue", type=_int_at_least(1), default=1,
+                      help="frames waiting for the tracker at most; older ones are dropped (default 1: newest only)")
+    live.add_argument("--reconnect-s", type=_non_negative_float, default=5.0,
+                      help="keep trying to reopen a vanished device this long (default 5 s)")
+    live.add_argument("--stall-s", type=_positive_float, default=10.0,
+                      help="end the run when no frame arrives for this long (default 10 s)")
+    live.add_argument("--seed", type=_int_at_least(0), default=0, help="synthetic device: scene seed")
+    live.add_argument("--record", action="store_true",
+                      help="also save the processed frames losslessly (raw.mkv + timestamps) for frame-exact replay")
+    live.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
+    live.add_argument("--out", type=Path, default=None, help="output directory (default recordings/live-<time>/)")
+    viewer = live.add_mutually_exclusive_group()
+    viewer.add_argument("--spawn", action="store_true", help="start a rerun viewer and stream to it")
+    viewer.add_argument("--connect", metavar="URL", default=None,
+                        help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
+    live.set_defaults(func=cmd_live)
     return parser
+
+
+def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
+    parser.add_argument("--dictionary", default=None, help="override [detector] dictionary, e.g. DICT_ARUCO_ORIGINAL")
+    parser.add_argument("--marker-length", type=_positive_float, default=None,
+                        help="override [markers] length_m: marker side in metres")
 
 
 # ---------------------------------------------------------------------------- commands
@@ -115,7 +173,7 @@ def _default_out(name: str) -> Path:
 
 
 class _Progress:
-    """A tqdm bar on a terminal, nothing otherwise."""
+    """A tqdm bar on a terminal (frames, fps, ETA), nothing otherwise."""
 
     def __init__(self, enabled: bool, desc: str) -> None:
         self.bar = None
@@ -124,7 +182,7 @@ class _Progress:
 
             self.bar = tqdm(desc=desc, unit="frame", leave=False, dynamic_ncols=True)
 
-    def __call__(self, done: int, total: int | None) -> None:
+    def __call__(self, done: int, total: int | None, _result: object = None) -> None:
         if self.bar is None:
             return
         if total is not None and self.bar.total != total:
@@ -136,15 +194,72 @@ class _Progress:
             self.bar.close()
 
 
+class _LiveStatus:
+    """One status line for live runs, rewritten about twice a second on a terminal."""
+
+    def __init__(self, enabled: bool, stats: Any) -> None:
+        self.enabled = enabled and sys.stderr.isatty()
+        self.stats = stats
+        self.start = time.monotonic()
+        self.last = 0.0
+        self.latency_ms = 0.0
+
+    def __call__(self, done: int, _total: int | None, result: Any = None) -> None:
+        if result is not None and result.latency_ms:
+            self.latency_ms = 0.9 * self.latency_ms + 0.1 * sum(result.latency_ms.values()) if done > 1 else sum(
+                result.latency_ms.values())
+        now = time.monotonic()
+        if not self.enabled or now - self.last < 0.5:
+            return
+        self.last = now
+        elapsed = now - self.start
+        counts = self.stats.as_dict()
+        tracked = 0 if result is None else sum(1 for t in result.targets.values() if t.measured)
+        sys.stderr.write(
+            f"\rlive {elapsed:6.1f} s | {done} frames, {done / max(elapsed, 1e-9):5.1f} fps | "
+            f"dropped {counts['dropped_queue']} | targets {tracked} | tracker {self.latency_ms:5.1f} ms   "
+        )
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\n")
+
+
+def _load_tracker_config(args: argparse.Namespace):  # noqa: ANN202
+    from .config import load_config
+
+    config = load_config(args.config)
+    return config.with_overrides(dictionary=getattr(args, "dictionary", None),
+                                 marker_length_m=getattr(args, "marker_length", None))
+
+
+def _camera_for_source(camera: Any, resolution: tuple[int, int], option: str) -> Any:
+    from .errors import CameraError
+
+    try:
+        return camera.scaled_to(*resolution)
+    except CameraError as err:
+        raise CameraError(f"{option}: {err}") from None
+
+
+def _finish(args: argparse.Namespace, outputs: Any) -> int:
+    if not args.quiet:
+        print(format_summary(outputs.summary))
+    files = "poses.csv, summary.json, recording.rrd" + (", raw.mkv" if outputs.raw_video else "")
+    print(f"outputs: {outputs.out_dir}/ ({files})")
+    status = outputs.summary.get("status")
+    return EXIT_OK if status == "completed" else EXIT_FAILURE
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .camera import CameraModel
-    from .config import load_config
     from .errors import SourceError
-    from .session import run_session
+    from .session import RunOptions, run_session
     from .sources.synthetic import SyntheticSource, Trajectory, demo_scene
     from .tracker import Tracker
 
-    config = load_config(args.config)
+    config = _load_tracker_config(args)
     camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
     if args.trajectory == "sweep" and args.far < args.near:
         raise InputError(f"--far {args.far} must not be below --near {args.near}")
@@ -154,26 +269,121 @@ def cmd_demo(args: argparse.Namespace) -> int:
                            noise_sigma=args.noise, blur_sigma=args.blur)
     except SourceError as err:
         raise SourceError(f"--camera {args.camera}: {err}") from None
-    out_dir = args.out or _default_out("demo")
+    options = RunOptions(max_frames=args.max_frames, spawn=args.spawn, recording_name="ar_anchor demo",
+                         extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory})
     progress = _Progress(not args.quiet, "demo")
     try:
         with SyntheticSource(scene) as source:
-            outputs = run_session(source, Tracker(config, camera), out_dir, max_frames=args.max_frames,
-                                  spawn=args.spawn, recording_name="ar_anchor demo", progress=progress,
-                                  extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory})
+            outputs = run_session(source, Tracker(config, camera), args.out or _default_out("demo"), options,
+                                  progress=progress)
     finally:
         progress.close()
+    return _finish(args, outputs)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from .camera import CameraModel
+    from .errors import CameraError
+    from .session import RunOptions, run_session
+    from .sources import open_file_source
+    from .tracker import Tracker
+
+    config = _load_tracker_config(args)
+    source = open_file_source(args.source, fps=args.fps)
+    with source:
+        camera_path = args.camera
+        if camera_path is None:
+            beside = Path(args.source).parent / "camera.yml"
+            if not beside.is_file():
+                raise CameraError(f"--camera FILE is required: the calibration of the camera that took {args.source} "
+                                  f"(none found at {beside})")
+            log.warning("using %s, found beside the source", beside)
+            camera_path = beside
+        camera = _camera_for_source(CameraModel.from_yaml(camera_path), source.resolution, f"--camera {camera_path}")
+        video = Path(args.source) if getattr(source, "references_original_frames", False) else None
+        options = RunOptions(max_frames=args.max_frames, spawn=args.spawn, recording_name=f"ar_anchor replay {args.source}",
+                             video_asset=video,
+                             extra_summary={"command": "replay", "source": str(args.source)})
+        progress = _Progress(not args.quiet, "replay")
+        try:
+            outputs = run_session(source, Tracker(config, camera), args.out or _default_out("replay"), options,
+                                  progress=progress,
+                                  summary_extras=lambda: {"source_ended_early": bool(getattr(source, "ended_early", False))})
+        finally:
+            progress.close()
+    code = _finish(args, outputs)
+    if getattr(source, "ended_early", False):
+        print(f"ar-anchor: error: {args.source}: the stream ended early (damaged or truncated file); outputs cover "
+              f"the {outputs.summary['frames']} frames read before that", file=sys.stderr)
+        return EXIT_FAILURE
+    return code
+
+
+def cmd_live(args: argparse.Namespace) -> int:
+    from .camera import CameraModel
+    from .errors import CameraError, SourceError
+    from .session import RunOptions, run_session
+    from .sources.live import LiveSource, SyntheticGrabber, WebcamGrabber
+    from .sources.synthetic import Trajectory, demo_scene
+    from .tracker import Tracker
+
+    config = _load_tracker_config(args)
+    fps = args.fps or 30.0
+    if args.device == "synthetic":
+        render_camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
+        if args.width or args.height:
+            render_camera = _camera_for_source(render_camera, (args.width or render_camera.width,
+                                                               args.height or render_camera.height), "--width/--height")
+        try:
+            scene = demo_scene(config, render_camera, frames=max(int(20 * fps), 2), seed=args.seed, fps=fps,
+                               trajectory=Trajectory(kind="orbit", near_m=0.5, look_at=(-0.01, 0.0, 0.0)))
+        except SourceError as err:
+            raise SourceError(f"--camera {args.camera}: {err}") from None
+        grabber = SyntheticGrabber(scene, loop=True)
+        device_camera: CameraModel | None = render_camera
+    else:
+        grabber = WebcamGrabber(args.device, width=args.width, height=args.height, fps=args.fps, fourcc=args.fourcc)
+        device_camera = None
+    source = LiveSource(grabber, queue_size=args.queue, reconnect_s=args.reconnect_s, stall_s=args.stall_s,
+                        camera=device_camera)
+    try:
+        if args.camera is None and device_camera is None:
+            raise CameraError("--camera FILE is required for a real camera (its calibration: see the README)")
+        camera_file = CameraModel.from_yaml(args.camera) if args.camera else device_camera
+        assert camera_file is not None
+        camera = _camera_for_source(camera_file, source.resolution, f"--camera {args.camera}")
+        out_dir = args.out or _default_out("live")
+        options = RunOptions(max_frames=args.max_frames, spawn=args.spawn, connect=args.connect,
+                             recording_name=f"ar_anchor live {args.device}", record_raw=args.record, record_fps=fps,
+                             extra_summary={"command": "live", "device": str(args.device),
+                                            "granted": getattr(grabber, "granted", {})})
+        if args.record:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+            camera.to_yaml(Path(out_dir) / "camera.yml")  # so `ar-anchor replay OUT/raw.mkv` finds it
+        status = _LiveStatus(not args.quiet, source.stats)
+        try:
+            with source:
+                outputs = run_session(source, Tracker(config, camera), out_dir, options, progress=status,
+                                      summary_extras=lambda: {"live": source.stats.as_dict()})
+        finally:
+            status.close()
+    finally:
+        source.close()
+    stats = source.stats.as_dict()
     if not args.quiet:
-        print(format_summary(outputs.summary))
-    print(f"outputs: {outputs.out_dir}/ (poses.csv, summary.json, recording.rrd)")
-    return EXIT_OK
+        print(f"live: {stats['captured']} frames captured, {stats['delivered']} tracked, {stats['dropped_queue']} "
+              f"dropped (tracker busy), {stats['dropped_non_monotonic']} dropped (timestamps)"
+              + (f"; ended: {stats['ended_because']}" if stats["ended_because"] else ""))
+    return _finish(args, outputs)
 
 
 def format_summary(summary: dict[str, Any]) -> str:
     """The run's summary as a small fixed-width table."""
     fps = summary.get("fps")
     lines = [f"{summary['frames']} frames in {summary['wall_time_s']:.1f} s ({fps:.1f} fps)" if fps else
-             f"{summary['frames']} frames"]
+             f"{summary['frames']} frames",
+             f"markers found in {summary['frames_with_markers']} of {summary['frames']} frames, "
+             f"a pose in {summary['frames_with_pose']}"]
     truth = summary.get("ground_truth")
     header = f"{'target':<12} {'detected':>9}"
     if truth:

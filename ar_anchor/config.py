@@ -166,7 +166,10 @@ class TrackerConfig:
 
         config = self
         if dictionary is not None:
-            dictionary_id(dictionary)
+            try:
+                dictionary_id(dictionary)
+            except ConfigError as err:
+                raise ConfigError(f"--dictionary: {err}") from None
             config = dataclasses.replace(config, detector=dataclasses.replace(config.detector, dictionary=dictionary))
         if marker_length_m is not None:
             if not (math.isfinite(marker_length_m) and marker_length_m > 0):

@@ -21,7 +21,7 @@ from .errors import OutputError
 from .geometry import Pose, angle_between_deg
 from .tracker import FrameResult
 
-__all__ = ["POSES_CSV_HEADER", "PosesCsvWriter", "RunSummary", "write_json_atomic"]
+__all__ = ["POSES_CSV_HEADER", "PosesCsvWriter", "RawVideoWriter", "RunSummary", "write_json_atomic"]
 
 POSES_CSV_HEADER = (
     "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
@@ -82,6 +82,61 @@ class PosesCsvWriter:
         self.close()
 
 
+class RawVideoWriter:
+    """Lossless recording of the frames the tracker processed, for frame-exact replay.
+
+    Writes ``path`` (FFV1 in Matroska: lossless, so a replay sees the very same pixels) and
+    ``<path>.timestamps.csv`` (``frame,timestamp_ns``: the original frame indices and capture
+    times), which :class:`~ar_anchor.sources.files.VideoFileSource` picks up. Both are flushed
+    per frame; a run that is interrupted leaves a playable file.
+    """
+
+    FOURCC = "FFV1"
+
+    def __init__(self, path: str | os.PathLike[str], fps: float = 30.0) -> None:
+        import cv2  # noqa: PLC0415 - only runs that record need the writer
+
+        self._cv2 = cv2
+        self.path = Path(path)
+        self.fps = fps
+        self.timestamps_path = self.path.with_name(self.path.name + ".timestamps.csv")
+        self._writer = None
+        self._size: tuple[int, int] | None = None
+        try:
+            self._csv_file: IO[str] | None = open(self.timestamps_path, "w", newline="", encoding="utf-8")  # noqa: SIM115
+        except OSError as err:
+            raise OutputError(f"{self.timestamps_path}: cannot write ({err.strerror})") from err
+        self._csv = csv.writer(self._csv_file, lineterminator="\n")
+        self._csv.writerow(["frame", "timestamp_ns"])
+        self.frames = 0
+
+    def write(self, image: np.ndarray, index: int, timestamp_ns: int) -> None:
+        cv2 = self._cv2
+        size = (image.shape[1], image.shape[0])
+        if self._writer is None:
+            self._writer = cv2.VideoWriter(str(self.path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*self.FOURCC),
+                                           self.fps, size)
+            if not self._writer.isOpened():
+                raise OutputError(f"{self.path}: cannot open a lossless {self.FOURCC} video writer")
+            self._size = size
+        if size != self._size:
+            raise OutputError(f"{self.path}: frame {index} is {size[0]}x{size[1]}, the recording is "
+                              f"{self._size[0]}x{self._size[1]}")
+        self._writer.write(image)
+        assert self._csv_file is not None
+        self._csv.writerow([index, timestamp_ns])
+        self._csv_file.flush()
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        if self._csv_file is not None:
+            self._csv_file.close()
+            self._csv_file = None
+
+
 def write_json_atomic(path: str | os.PathLike[str], data: Mapping[str, Any]) -> None:
     """Write JSON to ``path`` via a temporary file and rename (never a half-written file)."""
     path = Path(path)
@@ -114,12 +169,16 @@ class RunSummary:
 
     def __init__(self) -> None:
         self.frames = 0
+        self.frames_with_markers = 0
+        self.frames_with_pose = 0
         self.targets: dict[str, _TargetStats] = {}
         self.has_truth = False
         self.latency_ms: dict[str, list[float]] = {}
 
     def add(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
         self.frames += 1
+        self.frames_with_markers += len(result.detections) > 0
+        self.frames_with_pose += any(t.measured for t in result.targets.values())
         for key, value in result.latency_ms.items():
             self.latency_ms.setdefault(key, []).append(value)
         if truth is not None:
@@ -155,6 +214,8 @@ class RunSummary:
             targets[name] = entry
         return {
             "frames": self.frames,
+            "frames_with_markers": self.frames_with_markers,
+            "frames_with_pose": self.frames_with_pose,
             "wall_time_s": wall_time_s,
             "fps": self.frames / wall_time_s if wall_time_s > 0 else None,
             "ground_truth": self.has_truth,

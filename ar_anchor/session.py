@@ -1,28 +1,85 @@
 """Wire a frame source, a tracker and the outputs together for one run.
 
-Outputs in ``out_dir``: ``poses.csv``, ``summary.json``, ``recording.rrd``. Whatever happens
-(end of stream, an error, Ctrl-C) every output is closed so that it stays complete and readable;
-``summary.json`` then says how the run ended.
+Outputs in ``out_dir``: ``poses.csv``, ``summary.json``, ``recording.rrd`` and, when asked,
+``raw.mkv`` + ``raw.mkv.timestamps.csv`` (the processed frames, lossless). Whatever happens (end
+of stream, an error, Ctrl-C, SIGTERM) every output is closed so that it stays complete and
+readable; ``summary.json`` then says how the run ended (``status``).
 """
 
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .errors import OutputError
-from .outputs import PosesCsvWriter, RunSummary, write_json_atomic
+from .outputs import PosesCsvWriter, RawVideoWriter, RunSummary, write_json_atomic
 from .sources.base import FrameSource
 from .tracker import FrameResult, Tracker
 from .viz import RerunRecorder
 
-__all__ = ["RunOutputs", "run_session"]
+__all__ = ["RunOptions", "RunOutputs", "run_session"]
 
 log = logging.getLogger(__name__)
+
+
+class _InterruptGuard:
+    """Turns SIGINT/SIGTERM into KeyboardInterrupt, but never in the middle of writing one frame's
+    outputs: a signal that arrives there is held until the frame is complete, so ``poses.csv``,
+    the recording and ``summary.json`` always agree on the last frame. Main thread only; elsewhere
+    it does nothing."""
+
+    def __init__(self) -> None:
+        self._previous: dict[int, Any] = {}
+        self._critical = False
+        self._pending: int | None = None
+
+    def __enter__(self) -> _InterruptGuard:
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        if self._critical:
+            self._pending = signum
+            return
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    @contextmanager
+    def critical(self) -> Iterator[None]:
+        self._critical = True
+        try:
+            yield
+        finally:
+            self._critical = False
+        if self._pending is not None:
+            signum, self._pending = self._pending, None
+            raise KeyboardInterrupt(f"signal {signum}")
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a run logs and records, beyond the tracker itself."""
+
+    max_frames: int | None = None
+    spawn: bool = False
+    connect: str | None = None  # a running rerun viewer's gRPC URL
+    recording_name: str = "ar_anchor"
+    record_raw: bool = False  # also write raw.mkv (lossless) + timestamps
+    record_fps: float = 30.0
+    video_asset: Path | None = None  # reference this MP4 in the recording instead of JPEG frames
+    extra_summary: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -31,6 +88,7 @@ class RunOutputs:
     poses_csv: Path
     summary_json: Path
     recording_rrd: Path
+    raw_video: Path | None
     summary: dict[str, Any]
 
 
@@ -38,57 +96,73 @@ def run_session(
     source: FrameSource,
     tracker: Tracker,
     out_dir: str | Path,
+    options: RunOptions | None = None,
     *,
-    max_frames: int | None = None,
-    spawn: bool = False,
-    recording_name: str = "ar_anchor",
-    progress: Callable[[int, int | None], Any] | None = None,
-    extra_summary: dict[str, Any] | None = None,
+    progress: Callable[[int, int | None, FrameResult], Any] | None = None,
+    summary_extras: Callable[[], dict[str, Any]] | None = None,
 ) -> RunOutputs:
-    """Track every frame of ``source`` (up to ``max_frames``) and write the outputs to ``out_dir``.
+    """Track every frame of ``source`` (up to ``options.max_frames``) and write the outputs to ``out_dir``.
 
-    ``progress(frames_done, total)`` is called after each frame (total may be None).
+    ``progress(frames_done, total, result)`` is called after each frame (total may be None);
+    ``summary_extras()`` is merged into ``summary.json`` when the run ends, however it ends.
     """
+    options = options or RunOptions()
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise OutputError(f"--out {out_dir}: cannot create the directory ({err.strerror})") from err
     poses_csv, summary_json, recording_rrd = out_dir / "poses.csv", out_dir / "summary.json", out_dir / "recording.rrd"
+    raw_video = out_dir / "raw.mkv" if options.record_raw else None
     total = source.frame_count
-    if max_frames is not None:
-        total = max_frames if total is None else min(total, max_frames)
+    if options.max_frames is not None:
+        total = options.max_frames if total is None else min(total, options.max_frames)
 
     summary = RunSummary()
     status = "incomplete"
     data: dict[str, Any] = {}
+    image_logging = "none"
     start = time.perf_counter()
-    recorder = RerunRecorder(recording_rrd, camera=tracker.camera, settings=tracker.config.recording,
-                             spawn=spawn, recording_name=recording_name)
     try:
-        with PosesCsvWriter(poses_csv) as csv_writer:
+        with ExitStack() as stack:
+            recorder = RerunRecorder(recording_rrd, camera=tracker.camera, settings=tracker.config.recording,
+                                     spawn=options.spawn, connect=options.connect,
+                                     recording_name=options.recording_name)
+            stack.callback(recorder.close)
+            image_logging = "jpeg"
+            if options.video_asset is not None and recorder.use_video(options.video_asset, source.frame_count):
+                image_logging = "video_asset"
+            csv_writer = stack.enter_context(PosesCsvWriter(poses_csv))
+            raw_writer = None
+            if raw_video is not None:
+                raw_writer = RawVideoWriter(raw_video, fps=options.record_fps)
+                stack.callback(raw_writer.close)
+            guard = stack.enter_context(_InterruptGuard())
             for frame in source:
-                if max_frames is not None and summary.frames >= max_frames:
+                if options.max_frames is not None and summary.frames >= options.max_frames:
                     break
-                result: FrameResult = tracker.process(frame)
-                csv_writer.write(result)
-                recorder.log_frame(frame, result)
+                result = tracker.process(frame)
                 truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
-                summary.add(result, truth)
+                with guard.critical():
+                    if raw_writer is not None:
+                        raw_writer.write(frame.image, frame.index, frame.timestamp_ns)
+                    csv_writer.write(result)
+                    recorder.log_frame(frame, result)
+                    summary.add(result, truth)
                 if progress is not None:
-                    progress(summary.frames, total)
+                    progress(summary.frames, total, result)
         status = "completed"
     except KeyboardInterrupt:
         status = "interrupted"
         raise
-    except Exception:
+    except BaseException:
         status = "failed"
         raise
     finally:
         wall = time.perf_counter() - start
-        try:
-            recorder.close()
-        finally:
-            data = summary.as_dict(wall, status=status, **(extra_summary or {}))
-            write_json_atomic(summary_json, data)
-    return RunOutputs(out_dir, poses_csv, summary_json, recording_rrd, data)
+        extras = dict(options.extra_summary)
+        if summary_extras is not None:
+            extras.update(summary_extras())
+        data = summary.as_dict(wall, status=status, image_logging=image_logging, **extras)
+        write_json_atomic(summary_json, data)
+    return RunOutputs(out_dir, poses_csv, summary_json, recording_rrd, raw_video, data)

@@ -92,6 +92,7 @@ class RerunRecorder:
         camera: CameraModel,
         settings: RecordingConfig | None = None,
         spawn: bool = False,
+        connect: str | None = None,
         recording_name: str = "ar_anchor",
     ) -> None:
         self.settings = settings or RecordingConfig()
@@ -105,13 +106,16 @@ class RerunRecorder:
             except OSError as err:
                 raise OutputError(f"{self.rrd_path}: cannot write ({err.strerror})") from err
             sinks.append(rr.FileSink(str(self.rrd_path)))
-        if spawn and self._spawn_viewer():
+        if connect is not None:
+            sinks.append(rr.GrpcSink(connect))
+        elif spawn and self._spawn_viewer():
             sinks.append(rr.GrpcSink())
         if sinks:
             self.rec.set_sinks(*sinks, default_blueprint=default_blueprint())
         self.rec.send_recording_name(recording_name)
         self.anchor: str | None = None
         self._static_targets: set[str] = set()
+        self._video_frame_ns: np.ndarray | None = None
         self._log_static_camera(camera)
 
     def _spawn_viewer(self) -> bool:
@@ -127,6 +131,26 @@ class RerunRecorder:
             reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             log.warning("--spawn: could not start the rerun viewer (%s); recording to file only", reason)
             return False
+        return True
+
+    def use_video(self, path: str | os.PathLike[str], expected_frames: int | None = None) -> bool:
+        """Reference the source video itself (``AssetVideo`` + ``VideoFrameReference``) instead of
+        logging a JPEG per frame. Only MP4 with a codec rerun decodes (H.264, H.265, AV1, VP9)
+        qualifies; returns False (JPEG logging stays) otherwise."""
+        path = Path(path)
+        if path.suffix.lower() not in (".mp4", ".m4v", ".mov"):
+            return False
+        try:
+            asset = rr.AssetVideo(path=path)
+            frame_ns = np.asarray(asset.read_frame_timestamps_nanos(), dtype=np.int64)
+        except Exception as err:  # unsupported codec or container: rerun says which
+            log.info("%s: not referenced as a video in the recording (%s); logging JPEG frames", path, err)
+            return False
+        if frame_ns.size == 0 or (expected_frames is not None and frame_ns.size != expected_frames):
+            log.info("%s: rerun sees %d frames, OpenCV %s; logging JPEG frames", path, frame_ns.size, expected_frames)
+            return False
+        self.rec.log("camera/image", asset, static=True)
+        self._video_frame_ns = frame_ns
         return True
 
     # ------------------------------------------------------------------ static
@@ -157,7 +181,11 @@ class RerunRecorder:
         rec.set_time("time", duration=frame.timestamp_ns * 1e-9)
         every = self.settings.image_every
         scale = self.settings.image_scale
-        if every and frame.index % every == 0:
+        if self._video_frame_ns is not None:
+            scale = 1.0  # the referenced video is the full-resolution original
+            if frame.index < self._video_frame_ns.size:
+                rec.log("camera/image", rr.VideoFrameReference(nanoseconds=int(self._video_frame_ns[frame.index])))
+        elif every and frame.index % every == 0:
             image = frame.image
             if scale != 1.0:
                 size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))

@@ -376,12 +376,10 @@ def test_scaled_to_same_size_is_identity_without_warning(camera_logs):
     assert not [r for r in camera_logs.records if r.levelno >= logging.WARNING]
 
 
-def test_scaled_to_changed_aspect_ratio_warns_about_it(camera_logs):
+def test_scaled_to_changed_aspect_ratio_is_an_error():
     camera = CameraModel.default_synthetic()
-    scaled = camera.scaled_to(640, 480)
-    assert scaled.camera_matrix[0, 0] == pytest.approx(500.0)
-    assert scaled.camera_matrix[1, 1] == pytest.approx(1000.0 * 480 / 720)
-    assert any("aspect ratio" in r.getMessage() for r in camera_logs.records if r.levelno == logging.WARNING)
+    with pytest.raises(CameraError, match=r"1280x720 .* cannot be used for 640x480 frames"):
+        camera.scaled_to(640, 480)
 
 
 def test_camera_matrix_as_a_plain_list_of_nine_is_read_row_major(tmp_path):

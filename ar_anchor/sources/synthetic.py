@@ -190,6 +190,7 @@ def demo_scene(
     trajectory: Trajectory | None = None,
     noise_sigma: float = 2.0,
     blur_sigma: float = 0.6,
+    fps: float = 30.0,
 ) -> SyntheticScene:
     """The demo's scene: lone markers 0 and 7 left of centre, the config's boards right of it."""
     markers = []
@@ -214,6 +215,7 @@ def demo_scene(
         boards=tuple(boards),
         trajectory=trajectory or Trajectory(look_at=(-0.01, 0.0, 0.0)),
         frames=frames,
+        fps=fps,
         seed=seed,
         noise_sigma=noise_sigma,
         blur_sigma=blur_sigma,

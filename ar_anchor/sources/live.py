@@ -1,0 +1,350 @@
+"""Live sources: a capture thread that always hands the tracker the newest frame.
+
+:class:`LiveSource` runs a :class:`Grabber` (a V4L2 webcam, or the synthetic scene paced in real
+time) in a thread. Frames go through a bounded buffer: when the tracker is slower than the
+camera the oldest waiting frame is dropped and counted, never queued without bound. Frames get
+monotonic timestamps; a frame whose timestamp does not increase is dropped. If the device stops
+delivering (unplugged, stalled), the thread tries to reopen it for ``reconnect_s`` seconds and
+then ends the stream, so the run finishes cleanly with all outputs finalised.
+"""
+
+from __future__ import annotations
+
+import collections
+import glob
+import logging
+import os
+import threading
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from ..camera import CameraModel
+from ..errors import SourceError
+from ..geometry import Pose
+from .base import Frame
+from .files import to_bgr8
+from .synthetic import SyntheticScene, SyntheticSource
+
+__all__ = ["Captured", "Grabber", "LiveSource", "LiveStats", "SyntheticGrabber", "WebcamGrabber", "video_devices"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Captured:
+    """One image as the device delivered it."""
+
+    image: np.ndarray
+    timestamp_ns: int
+    truth: Mapping[str, Pose] | None = None
+
+
+class Grabber(Protocol):
+    """A device the capture thread reads from. ``read`` returns None when the device failed."""
+
+    name: str
+
+    def open(self) -> tuple[int, int]: ...
+
+    def read(self) -> Captured | None: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass
+class LiveStats:
+    captured: int = 0
+    delivered: int = 0
+    dropped_queue: int = 0
+    dropped_non_monotonic: int = 0
+    reconnects: int = 0
+    ended_because: str = ""
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def as_dict(self) -> dict[str, int | str]:
+        with self._lock:
+            return {
+                "captured": self.captured,
+                "delivered": self.delivered,
+                "dropped_queue": self.dropped_queue,
+                "dropped_non_monotonic": self.dropped_non_monotonic,
+                "reconnects": self.reconnects,
+                "ended_because": self.ended_because,
+            }
+
+
+class LiveSource:
+    """A :class:`~ar_anchor.sources.base.FrameSource` fed by a capture thread.
+
+    Parameters
+    ----------
+    grabber : the device.
+    queue_size : frames waiting for the tracker at most (1: always the newest).
+    reconnect_s : how long to keep trying to reopen a device that stopped delivering.
+    stall_s : how long the consumer waits for a frame before it gives up on the device.
+    camera : the device's own calibration when it has one (synthetic), else None.
+    """
+
+    def __init__(
+        self,
+        grabber: Grabber,
+        *,
+        queue_size: int = 1,
+        reconnect_s: float = 5.0,
+        stall_s: float = 10.0,
+        camera: CameraModel | None = None,
+    ) -> None:
+        if queue_size < 1:
+            raise ValueError("queue_size must be >= 1")
+        self.grabber = grabber
+        self.queue_size = queue_size
+        self.reconnect_s = reconnect_s
+        self.stall_s = stall_s
+        self.camera = camera
+        self.stats = LiveStats()
+        self._resolution = grabber.open()
+        self._buffer: collections.deque[Frame] = collections.deque()
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._finished = False
+        self._thread: threading.Thread | None = None
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return self._resolution
+
+    @property
+    def frame_count(self) -> None:
+        return None
+
+    def __enter__(self) -> LiveSource:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._capture_loop, name=f"capture:{self.grabber.name}", daemon=True)
+            self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self.grabber.close()
+
+    # ------------------------------------------------------------------ capture thread
+    def _capture_loop(self) -> None:
+        index = 0
+        last_ns: int | None = None
+        failing_since: float | None = None
+        try:
+            while not self._stop.is_set():
+                captured = self.grabber.read()
+                if captured is None:
+                    now = time.monotonic()
+                    if failing_since is None:
+                        failing_since = now
+                        log.warning("%s: stopped delivering frames; retrying for %.0f s", self.grabber.name,
+                                    self.reconnect_s)
+                    if now - failing_since > self.reconnect_s:
+                        self.stats.ended_because = f"{self.grabber.name} gone for more than {self.reconnect_s:g} s"
+                        log.warning("%s: giving up after %.0f s without frames", self.grabber.name, self.reconnect_s)
+                        return
+                    self._stop.wait(0.2)
+                    self._reopen()  # the clock keeps running until a frame actually arrives
+                    continue
+                failing_since = None
+                with self.stats._lock:
+                    self.stats.captured += 1
+                if last_ns is not None and captured.timestamp_ns <= last_ns:
+                    with self.stats._lock:
+                        self.stats.dropped_non_monotonic += 1
+                    continue
+                last_ns = captured.timestamp_ns
+                frame = Frame(captured.image, index, captured.timestamp_ns, captured.truth)
+                index += 1
+                with self._cond:
+                    if len(self._buffer) >= self.queue_size:
+                        self._buffer.popleft()
+                        with self.stats._lock:
+                            self.stats.dropped_queue += 1
+                    self._buffer.append(frame)
+                    self._cond.notify()
+        except Exception as err:  # the device failed in a way it should not: end the stream, say why
+            log.error("%s: capture failed: %s", self.grabber.name, err)
+            self.stats.ended_because = f"capture failed: {err}"
+        finally:
+            with self._cond:
+                self._finished = True
+                self._cond.notify_all()
+
+    def _reopen(self) -> bool:
+        try:
+            self.grabber.close()
+            size = self.grabber.open()
+        except SourceError:
+            return False
+        if size != self._resolution:
+            log.warning("%s: reopened at %dx%d instead of %dx%d", self.grabber.name, *size, *self._resolution)
+            return False
+        with self.stats._lock:
+            self.stats.reconnects += 1
+        log.warning("%s: reconnected", self.grabber.name)
+        return True
+
+    # ------------------------------------------------------------------ consumer
+    def __iter__(self) -> Iterator[Frame]:
+        self.start()
+        while True:
+            with self._cond:
+                deadline = time.monotonic() + self.stall_s
+                while not self._buffer and not self._finished and not self._stop.is_set():
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    self._cond.wait(min(remaining, 0.5))
+                if self._buffer:
+                    frame = self._buffer.popleft()
+                elif self._finished or self._stop.is_set():
+                    return
+                else:
+                    self.stats.ended_because = f"no frame for {self.stall_s:g} s (device stalled)"
+                    log.warning("%s: no frame for %.0f s: ending the stream", self.grabber.name, self.stall_s)
+                    return
+            with self.stats._lock:
+                self.stats.delivered += 1
+            yield frame
+
+
+# ---------------------------------------------------------------------------- devices
+
+
+def video_devices() -> list[str]:
+    """The ``/dev/video*`` device nodes on this machine."""
+    return sorted(glob.glob("/dev/video*"), key=lambda p: (len(p), p))
+
+
+class WebcamGrabber:
+    """A V4L2 camera by path (``/dev/video0``) or index, with requested size, fps and FOURCC."""
+
+    def __init__(
+        self, device: str | int, *, width: int | None = None, height: int | None = None,
+        fps: float | None = None, fourcc: str | None = "MJPG",
+    ) -> None:
+        self.device = device
+        self.name = str(device)
+        self.requested = (width, height, fps, fourcc)
+        self._capture: cv2.VideoCapture | None = None
+        self.granted: dict[str, object] = {}
+
+    def open(self) -> tuple[int, int]:
+        device = self.device
+        if isinstance(device, str) and not device.isdigit() and not Path(device).exists():
+            found = video_devices()
+            listing = ", ".join(found) if found else "there are none on this machine"
+            raise SourceError(f"--device {device}: no such video device (video devices: {listing})")
+        target: str | int = int(device) if isinstance(device, str) and device.isdigit() else device
+        capture = cv2.VideoCapture(target, cv2.CAP_V4L2)
+        if not capture.isOpened():
+            capture.release()
+            found = video_devices()
+            listing = ", ".join(found) if found else "there are none on this machine"
+            raise SourceError(f"--device {device}: cannot be opened as a V4L2 camera (video devices: {listing})")
+        width, height, fps, fourcc = self.requested
+        if fourcc:
+            capture.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc))
+        if width:
+            capture.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        if height:
+            capture.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        if fps:
+            capture.set(cv2.CAP_PROP_FPS, fps)
+        capture.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # keep the driver's queue short: we want the newest frame
+        granted_fourcc = int(capture.get(cv2.CAP_PROP_FOURCC))
+        self.granted = {
+            "width": int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)),
+            "height": int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+            "fps": capture.get(cv2.CAP_PROP_FPS),
+            "fourcc": granted_fourcc.to_bytes(4, "little").decode("ascii", "replace") if granted_fourcc > 0 else "",
+        }
+        differs = any(
+            want and str(want) != str(got) and not (isinstance(want, float) and abs(want - float(got)) < 0.5)
+            for want, got in zip(self.requested, (self.granted["width"], self.granted["height"], self.granted["fps"],
+                                                  self.granted["fourcc"]))
+        )
+        log.log(logging.WARNING if differs else logging.INFO,
+                "%s: granted %dx%d at %.4g fps, %s (requested %sx%s at %s fps, %s)", self.name,
+                    self.granted["width"], self.granted["height"], self.granted["fps"], self.granted["fourcc"] or "?",
+                    width or "default", height or "default", fps or "default", fourcc or "default")
+        self._capture = capture
+        return int(self.granted["width"]), int(self.granted["height"])
+
+    def read(self) -> Captured | None:
+        if self._capture is None:
+            return None
+        ok, image = self._capture.read()
+        timestamp_ns = time.monotonic_ns()
+        image = to_bgr8(image) if ok else None
+        if image is None:
+            return None
+        return Captured(image, timestamp_ns)
+
+    def close(self) -> None:
+        if self._capture is not None:
+            self._capture.release()
+            self._capture = None
+
+
+class SyntheticGrabber:
+    """The synthetic scene as a camera: frame ``k`` is shown at ``start + k / fps`` in real time.
+
+    If rendering is slower than the frame rate, frames whose time has passed are skipped, as a
+    real camera's would be: the camera does not wait for anybody.
+    """
+
+    name = "synthetic"
+
+    def __init__(self, scene: SyntheticScene, *, loop: bool = True) -> None:
+        self.source = SyntheticSource(scene)
+        self.scene = scene
+        self.loop = loop
+        self._start_ns: int | None = None
+        self._next_slot = 0
+
+    def open(self) -> tuple[int, int]:
+        self._start_ns = None
+        return self.scene.camera.size
+
+    def read(self) -> Captured | None:
+        now = time.monotonic_ns()
+        if self._start_ns is None:
+            self._start_ns = now
+        period_ns = 1e9 / self.scene.fps
+        slot = max(self._next_slot, int((now - self._start_ns) // period_ns))
+        due = self._start_ns + int(slot * period_ns)
+        if due > now:
+            time.sleep((due - now) * 1e-9)
+        self._next_slot = slot + 1
+        frames = max(self.scene.frames, 1)
+        if not self.loop and slot >= frames:
+            time.sleep(0.05)
+            return None  # the clip is over: like an unplugged camera
+        frame = self.source.frame(slot % frames)
+        return Captured(frame.image, max(due, now), frame.truth)
+
+    def close(self) -> None:
+        pass
