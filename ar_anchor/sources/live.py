@@ -243,9 +243,10 @@ class WebcamGrabber:
 
     def __init__(
         self, device: str | int, *, width: int | None = None, height: int | None = None,
-        fps: float | None = None, fourcc: str | None = "MJPG",
+        fps: float | None = None, fourcc: str | None = "MJPG", api: int = cv2.CAP_V4L2,
     ) -> None:
         self.device = device
+        self.api = api  # cv2.CAP_V4L2; another backend lets tests drive this code with a video file
         self.name = str(device)
         self.requested = (width, height, fps, fourcc)
         self._capture: cv2.VideoCapture | None = None
@@ -258,7 +259,7 @@ class WebcamGrabber:
             listing = ", ".join(found) if found else "there are none on this machine"
             raise SourceError(f"--device {device}: no such video device (video devices: {listing})")
         target: str | int = int(device) if isinstance(device, str) and device.isdigit() else device
-        capture = cv2.VideoCapture(target, cv2.CAP_V4L2)
+        capture = cv2.VideoCapture(target, self.api)
         if not capture.isOpened():
             capture.release()
             found = video_devices()
