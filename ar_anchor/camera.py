@@ -148,7 +148,7 @@ class CameraModel:
         """Distortion for OpenCV calls (None when there is none)."""
         return self.dist_coeffs if self.has_distortion else None
 
-    def scaled_to(self, width: int, height: int) -> CameraModel:
+    def scaled_to(self, width: int, height: int, *, warn: bool = True) -> CameraModel:
         """Intrinsics for the same lens at another resolution (pixel-centre convention kept).
 
         Logs a warning (calibrate at the resolution you track at when you can). A different aspect
@@ -163,7 +163,8 @@ class CameraModel:
                 f"camera calibrated at {self.width}x{self.height} (aspect {self.width / self.height:.3f}) cannot be "
                 f"used for {width}x{height} frames (aspect {width / height:.3f}): calibrate at this resolution"
             )
-        log.warning(
+        log.log(
+            logging.WARNING if warn else logging.DEBUG,
             "camera calibrated at %dx%d used at %dx%d: scaling intrinsics by %.4g",
             self.width, self.height, width, height, sx,
         )

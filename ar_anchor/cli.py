@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import signal
 import sys
 import time
@@ -332,8 +333,11 @@ def cmd_live(args: argparse.Namespace) -> int:
     if args.device == "synthetic":
         render_camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
         if args.width or args.height:
-            render_camera = _camera_for_source(render_camera, (args.width or render_camera.width,
-                                                               args.height or render_camera.height), "--width/--height")
+            size = (args.width or render_camera.width, args.height or render_camera.height)
+            try:
+                render_camera = render_camera.scaled_to(*size, warn=False)  # the size asked for: no warning
+            except CameraError as err:
+                raise CameraError(f"--width/--height: {err}") from None
         try:
             scene = demo_scene(config, render_camera, frames=max(int(20 * fps), 2), seed=args.seed, fps=fps,
                                trajectory=Trajectory(kind="orbit", near_m=0.5, look_at=(-0.01, 0.0, 0.0)))
@@ -430,11 +434,24 @@ def _interrupt_on_sigterm() -> None:
         pass
 
 
+def _quiet_opencv(verbosity: int) -> None:
+    """OpenCV and FFmpeg print their own warnings to stderr; ours say what matters, in one line.
+    Theirs show with -vv."""
+    if verbosity >= 2:
+        return
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET, read when a capture opens
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    import cv2
+
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     _interrupt_on_sigterm()
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
+    _quiet_opencv(args.verbose)
     try:
         return int(args.func(args))
     except InputError as err:

@@ -138,9 +138,7 @@ def run_session(
                 raw_writer = RawVideoWriter(raw_video, fps=options.record_fps)
                 stack.callback(raw_writer.close)
             guard = stack.enter_context(_InterruptGuard())
-            for frame in source:
-                if options.max_frames is not None and summary.frames >= options.max_frames:
-                    break
+            for frame in source if options.max_frames != 0 else ():
                 result = tracker.process(frame)
                 truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
                 with guard.critical():
@@ -151,6 +149,8 @@ def run_session(
                     summary.add(result, truth)
                 if progress is not None:
                     progress(summary.frames, total, result)
+                if options.max_frames is not None and summary.frames >= options.max_frames:
+                    break  # before taking another frame from the source
         status = "completed"
     except KeyboardInterrupt:
         status = "interrupted"
