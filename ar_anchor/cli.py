@@ -164,6 +164,8 @@ def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dictionary", default=None, help="override [detector] dictionary, e.g. DICT_ARUCO_ORIGINAL")
     parser.add_argument("--marker-length", type=_positive_float, default=None,
                         help="override [markers] length_m: marker side in metres")
+    parser.add_argument("--no-filter", action="store_true",
+                        help="the raw per-frame pipeline: lower-error IPPE solution, no flip resolution or smoothing")
 
 
 # ---------------------------------------------------------------------------- commands
@@ -232,7 +234,8 @@ def _load_tracker_config(args: argparse.Namespace):  # noqa: ANN202
 
     config = load_config(args.config)
     return config.with_overrides(dictionary=getattr(args, "dictionary", None),
-                                 marker_length_m=getattr(args, "marker_length", None))
+                                 marker_length_m=getattr(args, "marker_length", None),
+                                 filter_enabled=False if getattr(args, "no_filter", False) else None)
 
 
 def _camera_for_source(camera: Any, resolution: tuple[int, int], option: str) -> Any:
@@ -389,13 +392,15 @@ def format_summary(summary: dict[str, Any]) -> str:
              f"markers found in {summary['frames_with_markers']} of {summary['frames']} frames, "
              f"a pose in {summary['frames_with_pose']}"]
     truth = summary.get("ground_truth")
-    header = f"{'target':<12} {'detected':>9}"
+    header = f"{'target':<12} {'detected':>9} {'tracked/ambig/pred':>18}"
     if truth:
         header += f" {'in view':>8} {'rate':>6} {'rot med/p95 deg':>17} {'trans med/p95 %':>17}"
     lines.append(header)
     lines.append("-" * len(header))
     for name, entry in summary["targets"].items():
-        row = f"{name:<12} {entry['frames_measured']:>9}"
+        states = entry.get("states", {})
+        state_text = f"{states.get('tracked', 0)}/{states.get('ambiguous', 0)}/{states.get('predicted', 0)}"
+        row = f"{name:<12} {entry['frames_measured']:>9} {state_text:>18}"
         if truth:
             rate = entry.get("detection_rate_in_view")
             rot, trans = entry["rotation_error_deg"], entry["translation_error_pct"]

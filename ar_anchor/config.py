@@ -31,6 +31,7 @@ else:  # pragma: no cover - exercised on 3.10 only
 __all__ = [
     "BoardConfig",
     "DetectorConfig",
+    "FilterConfig",
     "MarkersConfig",
     "PoseConfig",
     "RecordingConfig",
@@ -124,6 +125,33 @@ class PoseConfig:
 
 
 @dataclass(frozen=True)
+class FilterConfig:
+    """Flip resolution and smoothing (see :mod:`ar_anchor.filtering`)."""
+
+    enabled: bool = True
+    corner_noise_px: float = 0.02  # floor of the corner noise; the filter estimates it from residuals
+    still_rotation_rad_sqrt_s: float = 1e-4  # random walk of the "still" motion model
+    still_translation_m_sqrt_s: float = 1e-5
+    angular_accel_moving_rad_s2: float = 30.0  # white acceleration of the "moving" motion model
+    linear_accel_moving_m_s2: float = 5.0
+    window: int = 30  # frames of flip evidence kept
+    decide_margin_px: float = 0.1  # error differences below this never decide (detector bias)
+    decide_z: float = 3.0  # standard errors of confidence to commit
+    switch_margin_px: float = 0.3  # stronger evidence needed to leave a committed branch
+    switch_z: float = 5.0
+    evidence_noise_px: float = 0.1  # floor of the per-frame evidence noise
+    evidence_cap_px: float = 3.0  # one frame's evidence is clipped to this
+    single_solution_evidence_px: float = 2.0  # evidence when the other solution failed validation
+    motion_weight_px_per_deg: float = 0.0  # evidence per degree of better agreement with the predicted motion
+    max_missed_frames: int = 10  # predict through gaps this long, then reset
+    flip_angle_deg: float = 10.0  # an orientation jump above this ...
+    flip_translation_m: float = 0.01  # ... with less motion than this is a flip, not motion
+    flip_persist_frames: int = 3  # ... unless it persists longer than this
+    max_output_step_deg: float = 8.0  # the output turns at most this much per frame (slews instead of snapping)
+    merge_angle_deg: float = 12.0  # solutions closer than this (or 3 sigma) are one: commitment is reset
+
+
+@dataclass(frozen=True)
 class RecordingConfig:
     image_every: int = 1
     image_scale: float = 1.0
@@ -140,6 +168,7 @@ class TrackerConfig:
     markers: MarkersConfig = field(default_factory=MarkersConfig)
     boards: tuple[BoardConfig, ...] = field(default_factory=_default_boards)
     pose: PoseConfig = field(default_factory=PoseConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     source: str = "<defaults>"
 
@@ -160,11 +189,14 @@ class TrackerConfig:
             return True
         return not self.markers.ids or marker_id in self.markers.ids
 
-    def with_overrides(self, *, dictionary: str | None = None, marker_length_m: float | None = None) -> TrackerConfig:
+    def with_overrides(self, *, dictionary: str | None = None, marker_length_m: float | None = None,
+                       filter_enabled: bool | None = None) -> TrackerConfig:
         """Copy with command-line overrides applied and validated."""
         import dataclasses
 
         config = self
+        if filter_enabled is not None:
+            config = dataclasses.replace(config, filter=dataclasses.replace(config.filter, enabled=filter_enabled))
         if dictionary is not None:
             try:
                 dictionary_id(dictionary)
@@ -322,6 +354,37 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     pose = PoseConfig(max_reproj_px=ps.take("max_reproj_px", float, defaults.pose.max_reproj_px, _positive))
     ps.done()
 
+    ft = _Table(root.data.pop("filter", {}), "[filter]", path)
+    fd = defaults.filter
+    filter_config = FilterConfig(
+        enabled=ft.take("enabled", bool, fd.enabled),
+        corner_noise_px=ft.take("corner_noise_px", float, fd.corner_noise_px, _positive),
+        still_rotation_rad_sqrt_s=ft.take("still_rotation_rad_sqrt_s", float, fd.still_rotation_rad_sqrt_s,
+                                          _positive),
+        still_translation_m_sqrt_s=ft.take("still_translation_m_sqrt_s", float, fd.still_translation_m_sqrt_s,
+                                           _positive),
+        angular_accel_moving_rad_s2=ft.take("angular_accel_moving_rad_s2", float, fd.angular_accel_moving_rad_s2,
+                                            _positive),
+        linear_accel_moving_m_s2=ft.take("linear_accel_moving_m_s2", float, fd.linear_accel_moving_m_s2, _positive),
+        window=ft.take("window", int, fd.window, _in_range(1, 10_000)),
+        decide_margin_px=ft.take("decide_margin_px", float, fd.decide_margin_px, _non_negative),
+        decide_z=ft.take("decide_z", float, fd.decide_z, _non_negative),
+        switch_margin_px=ft.take("switch_margin_px", float, fd.switch_margin_px, _non_negative),
+        switch_z=ft.take("switch_z", float, fd.switch_z, _non_negative),
+        evidence_noise_px=ft.take("evidence_noise_px", float, fd.evidence_noise_px, _positive),
+        evidence_cap_px=ft.take("evidence_cap_px", float, fd.evidence_cap_px, _positive),
+        single_solution_evidence_px=ft.take("single_solution_evidence_px", float, fd.single_solution_evidence_px,
+                                            _non_negative),
+        motion_weight_px_per_deg=ft.take("motion_weight_px_per_deg", float, fd.motion_weight_px_per_deg, _non_negative),
+        max_missed_frames=ft.take("max_missed_frames", int, fd.max_missed_frames, _in_range(0, 100_000)),
+        flip_angle_deg=ft.take("flip_angle_deg", float, fd.flip_angle_deg, _in_range(0.0, 180.0)),
+        flip_translation_m=ft.take("flip_translation_m", float, fd.flip_translation_m, _non_negative),
+        flip_persist_frames=ft.take("flip_persist_frames", int, fd.flip_persist_frames, _in_range(0, 10_000)),
+        max_output_step_deg=ft.take("max_output_step_deg", float, fd.max_output_step_deg, _in_range(0.1, 180.0)),
+        merge_angle_deg=ft.take("merge_angle_deg", float, fd.merge_angle_deg, _in_range(0.0, 90.0)),
+    )
+    ft.done()
+
     rc = _Table(root.data.pop("recording", {}), "[recording]", path)
     recording = RecordingConfig(
         image_every=rc.take("image_every", int, defaults.recording.image_every, _in_range(0, 10_000)),
@@ -336,6 +399,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         markers=MarkersConfig(length_m=length_m, lengths_m=lengths, ids=ids),
         boards=tuple(boards),
         pose=pose,
+        filter=filter_config,
         recording=recording,
         source=path,
     )

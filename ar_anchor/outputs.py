@@ -158,6 +158,7 @@ def _percentiles(values: list[float]) -> dict[str, float | None]:
 @dataclass
 class _TargetStats:
     measured: int = 0
+    states: dict[str, int] = field(default_factory=lambda: {"tracked": 0, "ambiguous": 0, "predicted": 0})
     in_view: int = 0
     measured_in_view: int = 0
     rotation_errors_deg: list[float] = field(default_factory=list)
@@ -187,6 +188,7 @@ class RunSummary:
                 self.targets.setdefault(name, _TargetStats()).in_view += 1
         for name, target in result.targets.items():
             stats = self.targets.setdefault(name, _TargetStats())
+            stats.states[target.state] += 1
             if not target.measured:
                 continue
             stats.measured += 1
@@ -205,6 +207,7 @@ class RunSummary:
             entry: dict[str, Any] = {
                 "frames_measured": stats.measured,
                 "detection_rate": stats.measured / self.frames if self.frames else 0.0,
+                "states": dict(stats.states),
             }
             if self.has_truth:
                 entry["frames_in_view"] = stats.in_view

@@ -11,6 +11,9 @@ Entity tree
 ``metrics/ambiguity/<target>``    IPPE error ratio (worse / better; near 1 = ambiguous)
 ``metrics/rotation_error_deg/<target>``  against ground truth, when known
 ``metrics/latency/<stage>``       per-stage time, milliseconds
+``metrics/flip_evidence_px/<target>``  the filter's flip evidence (signed: + favours branch 0)
+``world/hypotheses/<target>/branch_<k>``  this frame's solution on each filter branch, faint
+``events``                        state changes, commits, switches, rejected flips, resets (TextLog)
 
 Timelines: ``frame`` (sequence) and ``time`` (seconds since the stream's start).
 Rerun places pixel *corners* at integers, OpenCV pixel *centres*: 2D positions are shifted by
@@ -59,6 +62,7 @@ def default_blueprint() -> rrb.Blueprint:
     ones; the data itself is not clipped).
     """
     return rrb.Blueprint(
+        rrb.Vertical(
         rrb.Horizontal(
             rrb.Spatial2DView(origin="camera/image", name="Camera"),
             rrb.Spatial3DView(
@@ -73,10 +77,14 @@ def default_blueprint() -> rrb.Blueprint:
                 rrb.TimeSeriesView(origin="metrics/reproj_px", name="Reprojection error (px)"),
                 rrb.TimeSeriesView(origin="metrics/ambiguity", name="IPPE ambiguity ratio",
                                    axis_y=rrb.ScalarAxis(range=(1.0, 5.0))),
+                rrb.TimeSeriesView(origin="metrics/flip_evidence_px", name="Flip evidence (px, + = branch 0)"),
                 rrb.TimeSeriesView(origin="metrics/rotation_error_deg", name="Rotation error vs truth (deg)"),
                 rrb.TimeSeriesView(origin="metrics/latency", name="Latency (ms)"),
             ),
             column_shares=[3, 3, 2],
+        ),
+        rrb.TextLogView(origin="events", name="Tracker events"),
+        row_shares=[5, 1],
         ),
         collapse_panels=True,
     )
@@ -116,6 +124,7 @@ class RerunRecorder:
         self.anchor: str | None = None
         self._static_targets: set[str] = set()
         self._video_frame_ns: np.ndarray | None = None
+        self._states: dict[str, str] = {}
         self._log_static_camera(camera)
 
     def _spawn_viewer(self) -> bool:
@@ -235,6 +244,15 @@ class RerunRecorder:
                 rec.log(f"metrics/reproj_px/{part}", rr.Scalars(target.reproj_px))
             if math.isfinite(target.ambiguity):
                 rec.log(f"metrics/ambiguity/{part}", rr.Scalars(target.ambiguity))
+            if math.isfinite(target.evidence_px):
+                rec.log(f"metrics/flip_evidence_px/{part}", rr.Scalars(target.evidence_px))
+            previous_state = self._states.get(name)
+            if previous_state != target.state:
+                self._states[name] = target.state
+                rec.log("events", rr.TextLog(f"{name}: state {previous_state or '-'} -> {target.state}", level="INFO"))
+            for event in target.events:
+                level = "WARN" if event.startswith(("rejected_flip", "switch", "uncommit", "accepted_jump")) else "INFO"
+                rec.log("events", rr.TextLog(f"{name}: {event}", level=level))
             if truth is not None and name in truth:
                 error = angle_between_deg(target.pose.rotation, truth[name].rotation)
                 rec.log(f"metrics/rotation_error_deg/{part}", rr.Scalars(error))
@@ -257,6 +275,22 @@ class RerunRecorder:
             world_from_target = world_from_camera.compose(target.pose)
             rec.log(f"world/targets/{entity_name(name)}",
                     rr.Transform3D(translation=world_from_target.tvec, mat3x3=world_from_target.rotation))
+        self._log_hypotheses(result, world_from_camera)
+
+    def _log_hypotheses(self, result: FrameResult, world_from_camera: Pose) -> None:
+        """Both IPPE branches of every marker, faint, so the flip the filter resolves can be seen."""
+        for name, target in result.targets.items():
+            for branch, pose in enumerate(target.branch_poses):
+                path = f"world/hypotheses/{entity_name(name)}/branch_{branch}"
+                if pose is None:
+                    self.rec.log(path, rr.Clear(recursive=False))
+                    continue
+                world_from_branch = world_from_camera.compose(pose)
+                square = world_from_branch.apply(np.vstack([marker_corners_in_marker(target.length_m),
+                                                            marker_corners_in_marker(target.length_m)[:1]]))
+                normal = world_from_branch.apply(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, target.length_m]]))
+                colour = (90, 200, 255, 90) if branch == 0 else (255, 140, 60, 90)
+                self.rec.log(path, rr.LineStrips3D([square, normal], colors=[colour], radii=[target.length_m / 120]))
 
     def log_message(self, text: str, level: str = "INFO") -> None:
         self.rec.log("log", rr.TextLog(text, level=level))

@@ -100,9 +100,9 @@ def read_poses(path: Path) -> list[dict[str, str]]:
     return rows
 
 
-def row_pose(row: dict[str, str]) -> Pose:
-    rvec = np.array([float(row[f"rvec_{a}"]) for a in "xyz"])
-    tvec = np.array([float(row[f"tvec_{a}"]) for a in "xyz"])
+def row_pose(row: dict[str, str], prefix: str = "") -> Pose:
+    rvec = np.array([float(row[f"{prefix}rvec_{a}"]) for a in "xyz"])
+    tvec = np.array([float(row[f"{prefix}tvec_{a}"]) for a in "xyz"])
     return Pose(rvec, tvec)
 
 
@@ -249,7 +249,9 @@ def test_replay_matches_ground_truth_frame_by_frame(sequence, replays, kind, max
     rotation_errors, translation_errors = [], []
     for row in rows:
         truth = sequence.truth[int(row["frame"])]
-        pose = row_pose(row)
+        # the per-frame solution (raw_*): this clip orbits at several hundred deg/s, which is about
+        # sources and decoding, not about the temporal filter (tested in test_filtering.py)
+        pose = row_pose(row, prefix="raw_")
         rotation_errors.append(angle_between_deg(pose.rotation, truth.rotation))
         translation_errors.append(100.0 * np.linalg.norm(pose.tvec - truth.tvec) / np.linalg.norm(truth.tvec))
     assert np.median(rotation_errors) < max_rot_deg, rotation_errors
@@ -268,9 +270,9 @@ def test_lossless_video_replays_the_same_poses_as_the_png_folder(replays):
     png = read_poses(get_replay(replays, "png")[1] / "poses.csv")
     mkv = read_poses(get_replay(replays, "ffv1")[1] / "poses.csv")
     assert [(r["frame"], r["target"]) for r in png] == [(r["frame"], r["target"]) for r in mkv]
-    for a, b in zip(png, mkv):
-        np.testing.assert_allclose(row_pose(a).rvec, row_pose(b).rvec, atol=1e-9)
-        np.testing.assert_allclose(row_pose(a).tvec, row_pose(b).tvec, atol=1e-12)
+    for a, b in zip(png, mkv):  # per-frame solutions (the filter also sees the containers' timestamps)
+        np.testing.assert_allclose(row_pose(a, "raw_").rvec, row_pose(b, "raw_").rvec, atol=1e-9)
+        np.testing.assert_allclose(row_pose(a, "raw_").tvec, row_pose(b, "raw_").tvec, atol=1e-12)
 
 
 def test_mp4_is_referenced_as_a_video_asset_and_mkv_logs_jpeg(replays):
@@ -409,7 +411,7 @@ def test_camera_with_the_same_aspect_ratio_is_scaled_with_a_warning(tmp_path, se
     # then the scaled intrinsics are the sequence's own: the poses are accurate
     rows = [r for r in read_poses(tmp_path / "out" / "poses.csv") if r["target"] == "marker:0"]
     assert [int(r["frame"]) for r in rows] == list(range(FRAMES))
-    errors = [angle_between_deg(row_pose(r).rotation, sequence.truth[int(r["frame"])].rotation) for r in rows]
+    errors = [angle_between_deg(row_pose(r, "raw_").rotation, sequence.truth[int(r["frame"])].rotation) for r in rows]
     assert np.median(errors) < 1.0
 
 

@@ -166,6 +166,10 @@ class SyntheticScene:
     blur_sigma: float = 0.0  # Gaussian optical blur, pixels
     supersample: int = 4
     clutter: bool = True
+    hidden: tuple[tuple[int, int], ...] = ()  # frame ranges [start, stop) in which no target is visible (dropouts)
+
+    def is_hidden(self, index: int) -> bool:
+        return any(start <= index < stop for start, stop in self.hidden)
 
     def __post_init__(self) -> None:
         if self.camera.has_distortion:
@@ -335,9 +339,11 @@ class _Renderer:
             self.groups.append((centre, quads))
         self.k = self.camera.camera_matrix
 
-    def render(self, camera_from_world: Pose) -> np.ndarray:
+    def render(self, camera_from_world: Pose, *, targets: bool = True) -> np.ndarray:
         """Noise-free BGR image of the scene seen from ``camera_from_world``."""
         canvas = self._render_wall(camera_from_world).astype(np.float32)
+        if not targets:
+            return canvas
         depth = [float(camera_from_world.apply(centre[None])[0, 2]) for centre, _ in self.groups]
         for order in np.argsort(depth)[::-1]:
             for quad in self.groups[order][1]:
@@ -440,13 +446,15 @@ class SyntheticSource:
         """Frame ``index`` of the clip (deterministic for the scene's seed)."""
         camera_from_world = self.camera_from_world(index)
         rng = np.random.default_rng([self.scene.seed, index])
-        image = self.render_view(camera_from_world, rng)
+        hidden = self.scene.is_hidden(index)
+        image = self.render_view(camera_from_world, rng, targets=not hidden)
         timestamp_ns = int(round(index * 1e9 / self.scene.fps))
-        return Frame(image, index, timestamp_ns, self.truth(camera_from_world))
+        return Frame(image, index, timestamp_ns, {} if hidden else self.truth(camera_from_world))
 
-    def render_view(self, camera_from_world: Pose, rng: np.random.Generator | None = None) -> np.ndarray:
+    def render_view(self, camera_from_world: Pose, rng: np.random.Generator | None = None, *,
+                    targets: bool = True) -> np.ndarray:
         """BGR uint8 image from any camera pose, with the scene's blur and noise (noise needs ``rng``)."""
-        canvas = self._renderer.render(camera_from_world)
+        canvas = self._renderer.render(camera_from_world, targets=targets)
         if self.scene.blur_sigma > 0:
             canvas = cv2.GaussianBlur(canvas, (0, 0), self.scene.blur_sigma)
         if self.scene.noise_sigma > 0 and rng is not None:

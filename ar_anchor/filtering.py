@@ -1,0 +1,583 @@
+"""Temporal filtering: resolve the planar flip with evidence over time, and smooth the pose.
+
+Per target, a :class:`TargetTrack` carries
+
+* **two branches**, one per IPPE solution. Each new frame's solutions are associated to the
+  branches by their distance to each branch's constant-velocity prediction, so a branch follows
+  one physical interpretation through time (even where the two solutions cross, e.g. a marker
+  wobbling through fronto-parallel).
+* **evidence** for branch 0 against branch 1 over a window of frames: per frame, the difference of
+  their RMS reprojection errors (plus a small term for consistency with the predicted motion).
+  A branch is *committed* only when the window's mean difference exceeds ``decide_margin_px``
+  with ``decide_z`` standard errors of confidence. The margin is there because a corner
+  detector's own bias (a few hundredths of a pixel) differs systematically between the branches
+  too: evidence below it never decides, however long one waits. Such a target stays
+  ``ambiguous``, and its output holds the current best guess steadily instead of twitching.
+  Once committed, a switch needs stronger, sustained evidence (``switch_margin_px``, ``switch_z``).
+* a **smoother** on the chosen branch: an error-state Kalman filter on SO(3) (constant angular
+  velocity, rotation error as a body-frame rotation vector, so no Euler angles and no trouble
+  near 180 degrees) and a constant-velocity Kalman filter on translation (``filterpy`` does the
+  linear algebra). Measurement noise is the pose covariance implied by the corner noise through
+  the projection Jacobian: it grows with distance and shrinks with marker size in pixels. Process
+  noise is raised while the innovations say the target manoeuvres, so real motion is not lagged.
+* **dropouts**: missed frames are predicted (state ``predicted``) for up to ``max_missed_frames``;
+  a target that returns is associated to its branches by prediction, so it re-acquires without a flip.
+
+A measured frame whose orientation jumps by more than ``flip_angle_deg`` while the position moves
+less than ``flip_translation_m`` is treated as a flip, not as motion, unless it persists. When the
+output branch changes, the output turns toward the new branch by at most ``max_output_step_deg``
+per frame, so even a correction never snaps.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import IMMEstimator, KalmanFilter
+
+from .camera import CameraModel
+from .config import FilterConfig
+from .geometry import Pose, angle_between_deg, matrix_from_rvec, rvec_from_matrix
+from .pose import MarkerPose, PoseHypothesis
+
+__all__ = [
+    "RotationFilter",
+    "TargetTrack",
+    "TrackEvent",
+    "TrackUpdate",
+    "TranslationFilter",
+    "pose_covariance",
+]
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------- SO(3) helpers
+
+
+def so3_exp(vector: np.ndarray) -> np.ndarray:
+    return matrix_from_rvec(vector)
+
+
+def so3_log(rotation: np.ndarray) -> np.ndarray:
+    return rvec_from_matrix(rotation)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def pose_covariance(
+    pose: Pose, points_in_target: np.ndarray, camera: CameraModel, sigma_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance of (rotation error, translation) implied by isotropic corner noise ``sigma_px``.
+
+    Linearises the pinhole projection at ``pose`` with the rotation perturbed on the right
+    (``R exp(dtheta)``, the filter's error convention): ``Sigma = sigma^2 (J^T J)^-1``. Returns the
+    3x3 rotation block (rad^2, body frame) and the 3x3 translation block (m^2, camera frame).
+    """
+    rotation = pose.rotation
+    fx, fy = camera.camera_matrix[0, 0], camera.camera_matrix[1, 1]
+    rows = []
+    for point in np.asarray(points_in_target, dtype=np.float64):
+        x, y, z = rotation @ point + pose.tvec
+        d_pixel_d_cam = np.array([[fx / z, 0.0, -fx * x / z**2], [0.0, fy / z, -fy * y / z**2]])
+        d_cam = np.hstack([-rotation @ _skew(point), np.eye(3)])
+        rows.append(d_pixel_d_cam @ d_cam)
+    jacobian = np.vstack(rows)
+    information = jacobian.T @ jacobian
+    information += np.eye(6) * 1e-9 * np.trace(information)  # keep it invertible at degenerate views
+    covariance = sigma_px**2 * np.linalg.inv(information)
+    return covariance[:3, :3], covariance[3:, 3:]
+
+
+# 4 corners (8 coordinates), 6 pose parameters: E[RMS^2] = sigma^2 (8 - 6) / 4, so sigma = RMS * sqrt(2)
+_RESIDUAL_TO_SIGMA = math.sqrt(2.0)
+
+
+def _cv_process_noise(dt: float, accel_sigma: float) -> np.ndarray:
+    """Discrete white-noise-acceleration covariance for a 3D constant-velocity state [x, v]."""
+    q = accel_sigma**2
+    block = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]) * q
+    return np.kron(block, np.eye(3))
+
+
+def _cv_transition(dt: float) -> np.ndarray:
+    return np.block([[np.eye(3), dt * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+
+
+# ---------------------------------------------------------------------------- filters
+
+
+class _TwoModeCV:
+    """Kalman filter on a 3D quantity as an IMM of a "still" and a "moving" motion model.
+
+    The still model holds the quantity constant (velocity zero, a tiny random walk) and so
+    averages the measurements of a static target over many frames; the moving model is a
+    constant-velocity model with a large white acceleration that follows real motion without lag.
+    ``filterpy``'s :class:`IMMEstimator` weighs them by how well each predicted the measurements.
+    State ``[q, q_dot]`` (6), measurement ``q`` (3).
+    """
+
+    def __init__(self, x0: np.ndarray, p0: np.ndarray, still_sigma: float, accel_moving: float,
+                 switch_probability: float = 0.02) -> None:
+        self.still_sigma = still_sigma  # random walk of the still model, units / sqrt(s)
+        self.accel_moving = accel_moving
+        self.filters = []
+        for _ in range(2):
+            kf = KalmanFilter(dim_x=6, dim_z=3)
+            kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
+            kf.x = x0.reshape(6, 1).copy()
+            kf.P = p0.copy()
+            self.filters.append(kf)
+        p = switch_probability
+        self.imm = IMMEstimator(self.filters, np.array([0.5, 0.5]), np.array([[1 - p, p], [p, 1 - p]]))
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.imm.x[:, 0]
+
+    @property
+    def P(self) -> np.ndarray:  # noqa: N802 - the Kalman filter's name for it
+        return self.imm.P
+
+    @property
+    def moving_probability(self) -> float:
+        return float(self.imm.mu[1])
+
+    def predict(self, dt: float) -> None:
+        still, moving = self.filters
+        still.F = np.block([[np.eye(3), np.zeros((3, 3))], [np.zeros((3, 3)), np.zeros((3, 3))]])
+        still.Q = np.block([[np.eye(3) * self.still_sigma**2 * dt, np.zeros((3, 3))],
+                            [np.zeros((3, 3)), np.eye(3) * 1e-12]])
+        moving.F = _cv_transition(dt)
+        moving.Q = _cv_process_noise(dt, self.accel_moving)
+        self.imm.predict()
+
+    def update(self, z: np.ndarray, cov: np.ndarray) -> None:
+        for kf in self.filters:
+            kf.R = cov
+        self.imm.update(np.asarray(z, dtype=np.float64).reshape(3, 1))
+
+    def shift(self, delta: np.ndarray) -> None:
+        """Subtract ``delta`` from the first three state entries (after folding them into a nominal state)."""
+        for kf in self.filters:
+            kf.x[:3, 0] -= delta
+        self.imm.x[:3, 0] -= delta
+
+
+class RotationFilter:
+    """Error-state filter on SO(3) with a constant angular velocity model (two process-noise modes).
+
+    Nominal state: rotation ``R`` (``camera_from_target``); filter state ``x = [dtheta, omega]``:
+    the body-frame rotation error, folded into ``R`` and reset to zero after every step, and the
+    angular velocity (rad/s, body frame). ``R_true = R exp(dtheta)``; predict ``R <- R exp(omega dt)``.
+    Working on a small error vector keeps the filter away from Euler angles and from the
+    rotation-vector wrap at 180 degrees.
+    """
+
+    def __init__(self, rotation: np.ndarray, rotation_cov: np.ndarray, still_sigma: float, accel_moving: float,
+                 omega: np.ndarray | None = None, omega_sigma: float = 1.0) -> None:
+        self.accels = (still_sigma, accel_moving)
+        self.reset(rotation, rotation_cov, omega, omega_sigma)
+
+    def reset(self, rotation: np.ndarray, rotation_cov: np.ndarray, omega: np.ndarray | None = None,
+              omega_sigma: float = 1.0) -> None:
+        self.rotation = np.array(rotation, dtype=np.float64)
+        x0 = np.zeros(6)
+        if omega is not None:
+            x0[3:] = omega
+        p0 = np.block([[rotation_cov, np.zeros((3, 3))], [np.zeros((3, 3)), np.eye(3) * omega_sigma**2]])
+        self.cv = _TwoModeCV(x0, p0, *self.accels)
+
+    @property
+    def omega(self) -> np.ndarray:
+        return self.cv.x[3:].copy()
+
+    def _fold(self) -> None:
+        delta = self.cv.x[:3].copy()
+        self.rotation = self.rotation @ so3_exp(delta)
+        self.cv.shift(delta)
+
+    def predict(self, dt: float) -> None:
+        self.cv.predict(dt)
+        self._fold()
+
+    def innovation(self, measured: np.ndarray) -> np.ndarray:
+        """Body-frame rotation vector from the current estimate to a measurement."""
+        return so3_log(self.rotation.T @ measured)
+
+    def update(self, measured: np.ndarray, cov: np.ndarray) -> None:
+        self.cv.update(self.innovation(measured), cov)
+        self._fold()
+
+
+class TranslationFilter:
+    """Constant-velocity filter on the translation (camera frame, metres), two process-noise modes."""
+
+    def __init__(self, translation: np.ndarray, cov: np.ndarray, still_sigma: float, accel_moving: float) -> None:
+        x0 = np.concatenate([np.asarray(translation, dtype=np.float64), np.zeros(3)])
+        p0 = np.block([[cov, np.zeros((3, 3))], [np.zeros((3, 3)), np.eye(3) * 0.5**2]])
+        self.cv = _TwoModeCV(x0, p0, still_sigma, accel_moving)
+
+    @property
+    def translation(self) -> np.ndarray:
+        return self.cv.x[:3].copy()
+
+    def predict(self, dt: float) -> None:
+        self.cv.predict(dt)
+
+    def update(self, measured: np.ndarray, cov: np.ndarray) -> None:
+        self.cv.update(measured, cov)
+
+
+# ---------------------------------------------------------------------------- the track
+
+
+@dataclass(frozen=True)
+class TrackEvent:
+    """Something a user may want to see on the timeline: a commit, a switch, a rejected flip, a reset."""
+
+    kind: str
+    message: str
+
+
+@dataclass(frozen=True)
+class TrackUpdate:
+    """The track's answer for one frame."""
+
+    state: str  # tracked | ambiguous | predicted
+    pose: Pose
+    branch: int  # the output branch (0 or 1)
+    committed: bool
+    evidence: float  # confidence bound of the window's mean error difference, in px (+: branch 0)
+    hypotheses: tuple[Pose | None, Pose | None]  # this frame's measurement on each branch
+    events: tuple[TrackEvent, ...] = ()
+
+
+class _Motion:
+    """A branch's raw motion for association: its recent measured rotations and their rate.
+
+    Association uses these raw tracks, not the smoothed filters: where the two solutions cross
+    (a view passing through fronto-parallel) the true branch keeps its angular velocity while the
+    wrong one, its mirror image, moves the other way; a least-squares rate over the last few raw
+    measurements tells them apart without the filters' smoothing delay.
+    """
+
+    def __init__(self, rotation: np.ndarray, history: int = 6) -> None:
+        self.rotation = rotation  # the line fit's rotation at the newest sample
+        self.omega = np.zeros(3)  # rad/s, body frame
+        self.samples: collections.deque[tuple[float, np.ndarray]] = collections.deque(maxlen=history)
+        self.clock = 0.0
+        self.samples.append((0.0, rotation))
+
+    def predicted(self, dt: float) -> np.ndarray:
+        return self.rotation @ so3_exp(self.omega * dt)
+
+    def observe(self, rotation: np.ndarray, dt: float, max_step_rad: float) -> None:
+        """Add a raw measurement; refit the line (rotation and rate) through the recent ones."""
+        self.clock += dt
+        self.samples.append((self.clock, rotation))
+        if len(self.samples) < 3:
+            self.rotation = rotation
+            return
+        times = np.array([t for t, _ in self.samples])
+        offsets = np.array([so3_log(rotation.T @ r) for _, r in self.samples])  # tangent space at the newest
+        centred = times - times.mean()
+        omega = centred @ (offsets - offsets.mean(axis=0)) / float(centred @ centred)
+        rate_limit = max_step_rad / max(dt, 1e-6)
+        norm = float(np.linalg.norm(omega))
+        self.omega = omega * (rate_limit / norm) if norm > rate_limit else omega
+        fitted_now = offsets.mean(axis=0) + self.omega * (times[-1] - times.mean())
+        self.rotation = rotation @ so3_exp(fitted_now)
+
+    def coast(self, dt: float) -> None:
+        self.clock += dt
+        self.rotation = self.predicted(dt)
+        self.samples.append((self.clock, self.rotation))
+
+
+class TargetTrack:
+    """The filter state of one target (see the module doc)."""
+
+    def __init__(self, config: FilterConfig, points_in_target: np.ndarray) -> None:
+        self.config = config
+        self.points = np.asarray(points_in_target, dtype=np.float64)
+        self.branches: list[RotationFilter | None] | None = None  # None: no track
+        self.motions: list[_Motion | None] = [None, None]
+        self._pending_events: list[TrackEvent] = []
+        self.doubtful = False
+        self.output_branch = 0
+        self.committed: int | None = None
+        self.evidence: collections.deque[float] = collections.deque(maxlen=config.window)
+        self.translation_filter: TranslationFilter | None = None
+        self.last_ns: int | None = None
+        self.missed = 0
+        self.sigma_px = config.corner_noise_px
+        self.output_rotation: np.ndarray | None = None
+        self.output_translation: np.ndarray | None = None
+        self.slewing = False
+        self.pending_flip = 0
+        self.frames = 0
+
+    @property
+    def alive(self) -> bool:
+        return self.branches is not None
+
+    # ------------------------------------------------------------------ evidence
+    def _evidence_bound(self, margin: float, z: float) -> float:
+        """Lower confidence bound of |mean difference| above ``margin``, signed (+ favours branch 0)."""
+        if not self.evidence:
+            return 0.0
+        values = np.fromiter(self.evidence, dtype=np.float64)
+        mean = float(values.mean())
+        spread = float(values.std(ddof=1)) if values.size > 1 else 0.0
+        stderr = max(spread, self.config.evidence_noise_px) / math.sqrt(values.size)
+        bound = abs(mean) - z * stderr - margin
+        return math.copysign(bound, mean) if bound > 0 else 0.0
+
+    def _decide(self, events: list[TrackEvent]) -> None:
+        cfg = self.config
+        if self.committed is None:
+            bound = self._evidence_bound(cfg.decide_margin_px, cfg.decide_z)
+            if bound != 0.0:
+                self.committed = 0 if bound > 0 else 1
+                events.append(TrackEvent("commit", f"committed to branch {self.committed} after {self.frames} "
+                                                   f"frame(s) (evidence {bound:+.3f} px beyond the margin)"))
+        else:
+            bound = self._evidence_bound(cfg.switch_margin_px, cfg.switch_z)
+            favoured = None if bound == 0.0 else (0 if bound > 0 else 1)
+            if favoured is not None and favoured != self.committed:
+                events.append(TrackEvent("switch", f"switched from branch {self.committed} to {favoured} on "
+                                                   f"sustained evidence ({bound:+.3f} px)"))
+                self.committed = favoured
+                self.evidence.clear()
+
+    def _best_guess(self) -> int:
+        """While ambiguous: keep the current output branch unless the evidence leans the other way."""
+        bound = self._evidence_bound(0.0, 1.0)
+        if bound == 0.0 or self.branches is None or self.branches[0 if bound > 0 else 1] is None:
+            return self.output_branch
+        return 0 if bound > 0 else 1
+
+    # ------------------------------------------------------------------ per frame
+    def update(self, measurement: MarkerPose | None, timestamp_ns: int, camera: CameraModel) -> TrackUpdate | None:
+        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen)."""
+        dt = 1.0 / 30.0 if self.last_ns is None or timestamp_ns <= self.last_ns else (timestamp_ns - self.last_ns) * 1e-9
+        self.last_ns = timestamp_ns
+        events: list[TrackEvent] = []
+        self._pending_events = events
+        self.doubtful = False
+        if measurement is None:
+            return self._coast(dt, events)
+        self._update_noise(measurement)
+        if self.branches is None:
+            hypotheses = self._start(measurement, camera)
+            events.append(TrackEvent("start", "track started"))
+        else:
+            self.missed = 0
+            self.frames += 1
+            for branch in self.branches:
+                if branch is not None:
+                    branch.predict(dt)
+            assert self.translation_filter is not None
+            self.translation_filter.predict(dt)
+            assigned = self._associate(measurement, camera, dt)
+            self._add_evidence(assigned)
+            self._update_branches(assigned, camera, events)
+            self._update_translation(measurement, camera)
+            hypotheses = tuple(h.pose if h is not None else None for h in assigned)
+        self._decide(events)
+        target = self.committed if self.committed is not None else self._best_guess()
+        if target != self.output_branch and self.branches is not None and self.branches[target] is not None:
+            events.append(TrackEvent("branch", f"output moves to branch {target}"
+                                               + ("" if self.committed is not None else " (best guess)")))
+            self.output_branch = target
+            self.slewing = True
+        return self._result("tracked" if self.committed == self.output_branch else "ambiguous", hypotheses, events)
+
+    def _start(self, measurement: MarkerPose, camera: CameraModel) -> tuple[Pose | None, Pose | None]:
+        cfg = self.config
+        hypotheses = measurement.hypotheses
+        self.branches = [self._new_branch(h.pose, camera) for h in hypotheses]
+        self.motions = [_Motion(h.pose.rotation) for h in hypotheses]
+        if len(self.branches) == 1:
+            self.branches.append(None)  # the other solution failed validation: unknown until it shows up
+            self.motions.append(None)
+        self.output_branch = 0
+        self.committed = None
+        self.evidence.clear()
+        self.frames = 1
+        self.missed = 0
+        if len(hypotheses) == 1:
+            self.evidence.append(cfg.single_solution_evidence_px)
+        else:
+            self.evidence.append(float(np.clip(hypotheses[1].reproj_px - hypotheses[0].reproj_px,
+                                               -cfg.evidence_cap_px, cfg.evidence_cap_px)))
+        best = hypotheses[0].pose
+        _, cov_t = pose_covariance(best, self.points, camera, self.sigma_px)
+        self.translation_filter = TranslationFilter(best.tvec, cov_t, cfg.still_translation_m_sqrt_s,
+                                                    cfg.linear_accel_moving_m_s2)
+        self.output_rotation = best.rotation
+        self.slewing = False
+        return (hypotheses[0].pose, hypotheses[1].pose if len(hypotheses) > 1 else None)
+
+    def _new_branch(self, pose: Pose, camera: CameraModel) -> RotationFilter:
+        cov_rot, _ = pose_covariance(pose, self.points, camera, self.sigma_px)
+        return RotationFilter(pose.rotation, cov_rot, self.config.still_rotation_rad_sqrt_s,
+                              self.config.angular_accel_moving_rad_s2)
+
+    def _associate(self, measurement: MarkerPose, camera: CameraModel, dt: float) -> list[PoseHypothesis | None]:
+        """Assign this frame's solutions to the two branches by distance to their predicted raw motion."""
+        assert self.branches is not None
+        hypotheses = measurement.hypotheses
+        predicted = [m.predicted(dt) if m is not None else None for m in self.motions]
+        assigned: list[PoseHypothesis | None] = [None, None]
+        if len(hypotheses) == 1:
+            distances = [angle_between_deg(p, hypotheses[0].pose.rotation) if p is not None else math.inf
+                         for p in predicted]
+            assigned[int(np.argmin(distances))] = hypotheses[0]
+        elif any(p is None for p in predicted):  # a second solution shows up for the first time: it starts the unknown branch
+            index = 0 if predicted[0] is not None else 1
+            near = min(hypotheses, key=lambda h: angle_between_deg(predicted[index], h.pose.rotation))
+            far = hypotheses[1] if near is hypotheses[0] else hypotheses[0]
+            self.branches[1 - index] = self._new_branch(far.pose, camera)
+            self.motions[1 - index] = _Motion(far.pose.rotation)
+            assigned[index], assigned[1 - index] = near, far
+        else:
+            a, b = hypotheses[0].pose.rotation, hypotheses[1].pose.rotation
+            straight = angle_between_deg(predicted[0], a) + angle_between_deg(predicted[1], b)
+            crossed = angle_between_deg(predicted[0], b) + angle_between_deg(predicted[1], a)
+            assigned = [hypotheses[0], hypotheses[1]] if straight <= crossed else [hypotheses[1], hypotheses[0]]
+        for motion, hypothesis in zip(self.motions, assigned):
+            if motion is None:
+                continue
+            if hypothesis is not None:
+                motion.observe(hypothesis.pose.rotation, dt, math.radians(self.config.max_output_step_deg))
+            else:
+                motion.coast(dt)
+        if len(hypotheses) == 2:
+            self._check_crossing(hypotheses, camera)
+        return assigned
+
+    def _check_crossing(self, hypotheses: tuple[PoseHypothesis, ...], camera: CameraModel) -> None:
+        """Where the two solutions meet (a view through fronto-parallel), which branch is which is
+        lost in the noise: a commitment made before says nothing about the branches after."""
+        separation = angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation)
+        cov_rot, _ = pose_covariance(hypotheses[0].pose, self.points, camera, self.sigma_px)
+        noise_deg = float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov_rot)))))
+        merged = separation < max(self.config.merge_angle_deg, 3.0 * noise_deg)
+        if merged and self.committed is not None:
+            self._pending_events.append(TrackEvent(
+                "uncommit", f"the two solutions meet ({separation:.1f} deg apart): which is which is "
+                            "undecided again"))
+            self.committed = None
+        if merged:
+            self.evidence.clear()
+
+    def _add_evidence(self, assigned: list[PoseHypothesis | None]) -> None:
+        cfg = self.config
+        if assigned[0] is None or assigned[1] is None:
+            self.evidence.append(cfg.single_solution_evidence_px * (1 if assigned[0] is not None else -1))
+            return
+        difference = assigned[1].reproj_px - assigned[0].reproj_px
+        if cfg.motion_weight_px_per_deg > 0 and self.branches is not None and None not in self.branches:
+            innovation = [float(np.degrees(np.linalg.norm(b.innovation(h.pose.rotation))))
+                          for b, h in zip(self.branches, assigned)]  # type: ignore[union-attr]
+            difference += cfg.motion_weight_px_per_deg * (innovation[1] - innovation[0])
+        self.evidence.append(float(np.clip(difference, -cfg.evidence_cap_px, cfg.evidence_cap_px)))
+
+    def _update_noise(self, measurement: MarkerPose) -> None:
+        estimate = measurement.best.reproj_px * _RESIDUAL_TO_SIGMA
+        self.sigma_px = max(self.config.corner_noise_px, 0.9 * self.sigma_px + 0.1 * estimate)
+
+    def _update_branches(self, assigned: list[PoseHypothesis | None], camera: CameraModel,
+                         events: list[TrackEvent]) -> None:
+        cfg = self.config
+        assert self.branches is not None
+        for index, (branch, hypothesis) in enumerate(zip(self.branches, assigned)):
+            if branch is None or hypothesis is None:
+                continue  # coasts on its prediction
+            pose = hypothesis.pose
+            cov_rot, _ = pose_covariance(pose, self.points, camera, self.sigma_px)
+            jump = float(np.degrees(np.linalg.norm(branch.innovation(pose.rotation))))
+            if index == self.output_branch and jump > cfg.flip_angle_deg and not self.slewing:
+                assert self.translation_filter is not None
+                moved = float(np.linalg.norm(pose.tvec - self.translation_filter.translation))
+                _, cov_t = pose_covariance(pose, self.points, camera, self.sigma_px)
+                if moved < cfg.flip_translation_m + 3.0 * math.sqrt(float(np.max(np.linalg.eigvalsh(cov_t)))):
+                    self.pending_flip += 1
+                    if self.pending_flip <= cfg.flip_persist_frames:
+                        events.append(TrackEvent("rejected_flip", f"orientation jump of {jump:.1f} deg with "
+                                                                  f"{100 * moved:.2f} cm of motion: a flip, not motion"))
+                        self.doubtful = True  # this frame's output is a prediction we cannot vouch for
+                        continue
+                    events.append(TrackEvent("accepted_jump", f"orientation jump of {jump:.1f} deg persisted "
+                                                              f"{self.pending_flip} frames: accepted as motion"))
+                    branch.reset(pose.rotation, cov_rot)
+                    self.slewing = True
+            if index == self.output_branch:
+                self.pending_flip = 0
+            branch.update(pose.rotation, cov_rot)
+
+    def _update_translation(self, measurement: MarkerPose, camera: CameraModel) -> None:
+        assert self.translation_filter is not None
+        pose = measurement.best.pose
+        _, cov_t = pose_covariance(pose, self.points, camera, self.sigma_px)
+        self.translation_filter.update(pose.tvec, cov_t)
+
+    def _coast(self, dt: float, events: list[TrackEvent]) -> TrackUpdate | None:
+        if self.branches is None:
+            return None
+        self.missed += 1
+        if self.missed > self.config.max_missed_frames:
+            self.branches = None
+            events.append(TrackEvent("reset", f"lost for more than {self.config.max_missed_frames} frames: reset"))
+            return None
+        assert self.translation_filter is not None
+        for branch in self.branches:
+            if branch is not None:
+                branch.predict(dt)
+        for motion in self.motions:
+            if motion is not None:
+                motion.coast(dt)
+        self.translation_filter.predict(dt)
+        return self._result("predicted", (None, None), events)
+
+    def _output(self, filtered: np.ndarray, moved_m: float) -> np.ndarray:
+        """The rotation to show: the filter's, but while the position stays put (``moved_m`` below
+        ``flip_translation_m``) turning at most max_output_step_deg per frame: a change of branch, or a
+        filter that jumped, is slewed over several frames instead of snapping."""
+        previous = self.output_rotation
+        if previous is None:
+            self.output_rotation = filtered
+            return filtered
+        step = so3_log(previous.T @ filtered)
+        angle = float(np.degrees(np.linalg.norm(step)))
+        limit = self.config.max_output_step_deg
+        if angle <= limit or moved_m >= self.config.flip_translation_m:
+            self.slewing = False
+            self.output_rotation = filtered
+        else:
+            self.slewing = True
+            self.output_rotation = previous @ so3_exp(step * (limit / angle))
+        return self.output_rotation
+
+    def _result(self, state: str, hypotheses: tuple[Pose | None, Pose | None],
+                events: list[TrackEvent]) -> TrackUpdate:
+        assert self.branches is not None and self.translation_filter is not None
+        branch = self.branches[self.output_branch]
+        assert branch is not None
+        translation = self.translation_filter.translation
+        moved = 0.0 if self.output_translation is None else float(np.linalg.norm(translation - self.output_translation))
+        self.output_translation = translation
+        rotation = self._output(branch.rotation, moved)
+        pose = Pose.from_matrix(rotation, translation)
+        if state == "tracked" and (self.slewing or self.doubtful):
+            state = "ambiguous"  # turning toward the committed branch, or a rejected flip: not vouched for
+        return TrackUpdate(state, pose, self.output_branch, self.committed is not None,
+                           self._evidence_bound(0.0, 0.0), hypotheses, tuple(events))
