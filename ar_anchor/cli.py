@@ -156,6 +156,21 @@ def build_parser() -> argparse.ArgumentParser:
     viewer.add_argument("--connect", metavar="URL", default=None,
                         help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
     live.set_defaults(func=cmd_live)
+
+    bench = commands.add_parser(
+        "bench",
+        help="benchmarks on synthetic ground truth",
+        description="stability: raw per-frame IPPE vs. the tracker over a grid of synthetic scenarios "
+        "(flips, errors, jitter, lag, time to commit), written as markdown and JSON.",
+        allow_abbrev=False,
+    )
+    _add_common_options(bench, defaults=False)
+    bench.add_argument("name", choices=("stability",), help="which benchmark")
+    bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
+    bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
+    bench.add_argument("--out", type=Path, default=Path("bench") / "results",
+                       help="output directory (default bench/results)")
+    bench.set_defaults(func=cmd_bench)
     return parser
 
 
@@ -382,6 +397,22 @@ def cmd_live(args: argparse.Namespace) -> int:
               f"dropped (tracker busy), {stats['dropped_non_monotonic']} dropped (timestamps)"
               + (f"; ended: {stats['ended_because']}" if stats["ended_because"] else ""))
     return _finish(args, outputs)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import write_stability_report
+    from .config import load_config
+
+    config = load_config(args.config)
+    command = "ar-anchor bench stability" + (" --quick" if args.quick else "")
+
+    def progress(i: int, total: int, name: str) -> None:
+        if not args.quiet:
+            print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
+
+    write_stability_report(args.out, quick=args.quick, config=config, progress=progress, command=command)
+    print(f"results: {args.out / 'stability.md'} and {args.out / 'stability.json'}")
+    return EXIT_OK
 
 
 def format_summary(summary: dict[str, Any]) -> str:
