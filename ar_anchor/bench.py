@@ -94,7 +94,9 @@ class ScenarioRun:
 def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel) -> ScenarioRun:
     """Render and track a scenario with ``config`` (its filter on)."""
     source = SyntheticSource(scenario.scene(camera, config.detector.dictionary))
-    tracker = Tracker(dataclasses.replace(config, filter=dataclasses.replace(config.filter, enabled=True)), camera)
+    config = config.with_overrides(marker_length_m=scenario.marker_m, filter_enabled=True)
+    config = dataclasses.replace(config, markers=dataclasses.replace(config.markers, lengths_m={}))
+    tracker = Tracker(config, camera)
     run = ScenarioRun(scenario)
     for frame in source:
         start = time.perf_counter()
@@ -178,7 +180,12 @@ def evaluate(run: ScenarioRun, config: TrackerConfig | None = None) -> dict[str,
     result["detected_pct"] = 100.0 * sum(p is not None for p in run.raw) / max(len(run.raw), 1)
     result["delta_median_px"] = float(np.median(deltas)) if deltas.size else None
     result["delta_p90_px"] = float(np.percentile(deltas, 90)) if deltas.size else None
-    result["decidable"] = bool(deltas.size and np.percentile(deltas, 90) > config.filter.decide_margin_px)
+    # decidable: the wrong solution at some point reprojects worse than the margin, or fails validation
+    # outright (then there is only one solution: no delta at all)
+    measured = [d for d, s in zip(run.delta_px, run.state) if s and s != "predicted"]
+    single = sum(1 for d in measured if not math.isfinite(d))
+    result["decidable"] = bool(deltas.size == 0 or np.percentile(deltas, 90) > config.filter.decide_margin_px
+                               or single > 0.1 * max(len(measured), 1))
     return result
 
 

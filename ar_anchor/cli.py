@@ -72,6 +72,20 @@ def _add_common_options(parser: argparse.ArgumentParser, *, defaults: bool) -> N
                         help="no progress bar or summary table")
 
 
+def _add_command(commands: Any, name: str, help_text: str, description: str) -> argparse.ArgumentParser:
+    parser = commands.add_parser(name, help=help_text, description=description, allow_abbrev=False)
+    _add_common_options(parser, defaults=False)
+    return parser
+
+
+def _add_run_options(parser: argparse.ArgumentParser, name: str, *, spawn: bool = True) -> None:
+    """--max-frames, --out and (optionally) --spawn, shared by the commands that run the tracker."""
+    parser.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
+    parser.add_argument("--out", type=Path, default=None, help=f"output directory (default recordings/{name}-<time>/)")
+    if spawn:
+        parser.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ar-anchor",
@@ -82,16 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common_options(parser, defaults=True)
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    demo = commands.add_parser(
-        "demo",
-        help="track a built-in synthetic scene with exact ground truth (no camera needed)",
-        description="Render a synthetic scene (lone markers and a 2x2 board, the camera sweeping from near "
+    demo = _add_command(
+        commands, "demo", "track a built-in synthetic scene with exact ground truth (no camera needed)",
+        "Render a synthetic scene (lone markers and a 2x2 board, the camera sweeping from near "
         "to far), track it, and write poses.csv, summary.json and recording.rrd.",
-        allow_abbrev=False,
     )
-    _add_common_options(demo, defaults=False)
     demo.add_argument("--frames", type=_int_at_least(1), default=300, help="frames to render (default 300)")
-    demo.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
     demo.add_argument("--seed", type=_int_at_least(0), default=0, help="seed of scene texture and noise (default 0)")
     demo.add_argument("--camera", type=Path, default=None,
                       help="camera YAML to render with (default: configs/camera_synthetic.yml values)")
@@ -102,36 +112,27 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--far", type=_positive_float, default=3.0, help="farthest camera distance, metres")
     demo.add_argument("--noise", type=_non_negative_float, default=2.0, help="sensor noise sigma, grey levels")
     demo.add_argument("--blur", type=_non_negative_float, default=0.6, help="optical blur sigma, pixels")
-    demo.add_argument("--out", type=Path, default=None, help="output directory (default recordings/demo-<time>/)")
-    demo.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
+    _add_run_options(demo, "demo")
     demo.set_defaults(func=cmd_demo)
 
-    replay = commands.add_parser(
-        "replay",
-        help="track a video file, an image folder or a glob of images",
-        description="Track every frame of a video file (container timestamps), an image folder or a glob "
+    replay = _add_command(
+        commands, "replay", "track a video file, an image folder or a glob of images",
+        "Track every frame of a video file (container timestamps), an image folder or a glob "
         "(natural order, --fps timestamps) and write poses.csv, summary.json and recording.rrd.",
-        allow_abbrev=False,
     )
-    _add_common_options(replay, defaults=False)
     replay.add_argument("source", metavar="SOURCE", help="video file, image folder, or a quoted glob such as 'shots/*.png'")
     replay.add_argument("--camera", type=Path, default=None,
                         help="camera YAML (default: camera.yml beside SOURCE, as `live --record` writes it)")
     _add_tracker_options(replay)
     replay.add_argument("--fps", type=_positive_float, default=30.0, help="frame rate of image folders (default 30)")
-    replay.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
-    replay.add_argument("--out", type=Path, default=None, help="output directory (default recordings/replay-<time>/)")
-    replay.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
+    _add_run_options(replay, "replay")
     replay.set_defaults(func=cmd_replay)
 
-    live = commands.add_parser(
-        "live",
-        help="track a V4L2 webcam (or --device synthetic) live; view it in rerun",
-        description="Track a live camera. The live view is the rerun viewer (--spawn, or --connect to a running "
+    live = _add_command(
+        commands, "live", "track a V4L2 webcam (or --device synthetic) live; view it in rerun",
+        "Track a live camera. The live view is the rerun viewer (--spawn, or --connect to a running "
         "one); outputs are written as the run goes and finalised on Ctrl-C.",
-        allow_abbrev=False,
     )
-    _add_common_options(live, defaults=False)
     live.add_argument("--device", default="/dev/video0",
                       help="V4L2 device path or index, or 'synthetic' for the demo scene in real time (default /dev/video0)")
     live.add_argument("--camera", type=Path, default=None, help="camera YAML (required for a real camera)")
@@ -149,22 +150,18 @@ def build_parser() -> argparse.ArgumentParser:
     live.add_argument("--seed", type=_int_at_least(0), default=0, help="synthetic device: scene seed")
     live.add_argument("--record", action="store_true",
                       help="also save the processed frames losslessly (raw.mkv + timestamps) for frame-exact replay")
-    live.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
-    live.add_argument("--out", type=Path, default=None, help="output directory (default recordings/live-<time>/)")
+    _add_run_options(live, "live", spawn=False)
     viewer = live.add_mutually_exclusive_group()
     viewer.add_argument("--spawn", action="store_true", help="start a rerun viewer and stream to it")
     viewer.add_argument("--connect", metavar="URL", default=None,
                         help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
     live.set_defaults(func=cmd_live)
 
-    bench = commands.add_parser(
-        "bench",
-        help="benchmarks on synthetic ground truth",
-        description="stability: raw per-frame IPPE vs. the tracker over a grid of synthetic scenarios "
+    bench = _add_command(
+        commands, "bench", "benchmarks on synthetic ground truth",
+        "stability: raw per-frame IPPE vs. the tracker over a grid of synthetic scenarios "
         "(flips, errors, jitter, lag, time to commit), written as markdown and JSON.",
-        allow_abbrev=False,
     )
-    _add_common_options(bench, defaults=False)
     bench.add_argument("name", choices=("stability",), help="which benchmark")
     bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
     bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")

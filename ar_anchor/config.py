@@ -148,7 +148,8 @@ class FilterConfig:
     flip_translation_m: float = 0.01  # ... with less motion than this is a flip, not motion
     flip_persist_frames: int = 3  # ... unless it persists longer than this
     max_output_step_deg: float = 8.0  # the output turns at most this much per frame (slews instead of snapping)
-    merge_angle_deg: float = 12.0  # solutions closer than this (or 3 sigma) are one: commitment is reset
+    tilt_accel_rad_s2: float = 3.0  # motion model of the tilt that tells the two branches apart
+    crossing_blind_frames: int = 8  # branches indistinguishable longer than this: the commitment ends
 
 
 @dataclass(frozen=True)
@@ -381,7 +382,8 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         flip_translation_m=ft.take("flip_translation_m", float, fd.flip_translation_m, _non_negative),
         flip_persist_frames=ft.take("flip_persist_frames", int, fd.flip_persist_frames, _in_range(0, 10_000)),
         max_output_step_deg=ft.take("max_output_step_deg", float, fd.max_output_step_deg, _in_range(0.1, 180.0)),
-        merge_angle_deg=ft.take("merge_angle_deg", float, fd.merge_angle_deg, _in_range(0.0, 90.0)),
+        tilt_accel_rad_s2=ft.take("tilt_accel_rad_s2", float, fd.tilt_accel_rad_s2, _positive),
+        crossing_blind_frames=ft.take("crossing_blind_frames", int, fd.crossing_blind_frames, _in_range(0, 10_000)),
     )
     ft.done()
 

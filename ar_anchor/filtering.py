@@ -259,46 +259,62 @@ class TrackUpdate:
     events: tuple[TrackEvent, ...] = ()
 
 
-class _Motion:
-    """A branch's raw motion for association: its recent measured rotations and their rate.
+def tilt_of(pose: Pose) -> np.ndarray:
+    """The target normal's tilt away from the line of sight, as 2 components (sines).
 
-    Association uses these raw tracks, not the smoothed filters: where the two solutions cross
-    (a view passing through fronto-parallel) the true branch keeps its angular velocity while the
-    wrong one, its mirror image, moves the other way; a least-squares rate over the last few raw
-    measurements tells them apart without the filters' smoothing delay.
+    The two IPPE solutions of a square are mirror images through the line of sight to the marker:
+    their tilts are opposite (``tilt_of(A) ~ -tilt_of(B)``). Tracking the tilt of one branch tells
+    which solution is which, even where they cross (tilt near zero: a fronto-parallel view).
+    """
+    sight = pose.tvec / np.linalg.norm(pose.tvec)
+    normal = pose.rotation[:, 2]
+    reference = np.array([0.0, 1.0, 0.0]) if abs(sight[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(sight, reference)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(sight, e1)
+    return np.array([normal @ e1, normal @ e2])
+
+
+class _TiltTracker:
+    """Constant-velocity Kalman filter on branch 0's tilt (2D), used only to tell the branches apart.
+
+    Each frame offers a mirror pair of tilts; branch 0 takes the one nearer the prediction. When the
+    two are about equally near (the solutions cross and the noise hides which is which) the filter
+    coasts on its velocity instead of guessing, and the branches are re-identified once they part.
     """
 
-    def __init__(self, rotation: np.ndarray, history: int = 6) -> None:
-        self.rotation = rotation  # the line fit's rotation at the newest sample
-        self.omega = np.zeros(3)  # rad/s, body frame
-        self.samples: collections.deque[tuple[float, np.ndarray]] = collections.deque(maxlen=history)
-        self.clock = 0.0
-        self.samples.append((0.0, rotation))
+    def __init__(self, tilt: np.ndarray, sigma: float, accel: float) -> None:
+        self.kf = KalmanFilter(dim_x=4, dim_z=2)
+        self.kf.H = np.hstack([np.eye(2), np.zeros((2, 2))])
+        self.kf.x = np.concatenate([tilt, np.zeros(2)]).reshape(4, 1)
+        self.kf.P = np.diag([sigma**2, sigma**2, 1.0, 1.0])
+        self.accel = accel
+        self.blind = 0  # consecutive frames without a clear decision
 
-    def predicted(self, dt: float) -> np.ndarray:
-        return self.rotation @ so3_exp(self.omega * dt)
+    @property
+    def tilt(self) -> np.ndarray:
+        return self.kf.x[:2, 0].copy()
 
-    def observe(self, rotation: np.ndarray, dt: float, max_step_rad: float) -> None:
-        """Add a raw measurement; refit the line (rotation and rate) through the recent ones."""
-        self.clock += dt
-        self.samples.append((self.clock, rotation))
-        if len(self.samples) < 3:
-            self.rotation = rotation
-            return
-        times = np.array([t for t, _ in self.samples])
-        offsets = np.array([so3_log(rotation.T @ r) for _, r in self.samples])  # tangent space at the newest
-        centred = times - times.mean()
-        omega = centred @ (offsets - offsets.mean(axis=0)) / float(centred @ centred)
-        rate_limit = max_step_rad / max(dt, 1e-6)
-        norm = float(np.linalg.norm(omega))
-        self.omega = omega * (rate_limit / norm) if norm > rate_limit else omega
-        fitted_now = offsets.mean(axis=0) + self.omega * (times[-1] - times.mean())
-        self.rotation = rotation @ so3_exp(fitted_now)
+    def predict(self, dt: float) -> None:
+        f = np.eye(4)
+        f[0, 2] = f[1, 3] = dt
+        q = self.accel**2 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+        self.kf.predict(F=f, Q=np.kron(q, np.eye(2)))  # state [tilt_x, tilt_y, rate_x, rate_y]
 
-    def coast(self, dt: float) -> None:
-        self.clock += dt
-        self.rotation = self.predicted(dt)
-        self.samples.append((self.clock, self.rotation))
+    def choose(self, candidate: np.ndarray, sigma: float) -> tuple[bool, bool]:
+        """Is ``candidate`` (rather than its mirror) branch 0's tilt, and is that clear? Updates when clear."""
+        predicted = self.tilt
+        near = float(np.linalg.norm(candidate - predicted))
+        mirror = float(np.linalg.norm(-candidate - predicted))
+        spread = math.sqrt(float(np.trace(self.kf.P[:2, :2])) + 2 * sigma**2)
+        is_branch0 = near <= mirror
+        clear = abs(near - mirror) > spread
+        if clear:
+            self.blind = 0
+            self.kf.update((candidate if is_branch0 else -candidate).reshape(2, 1), R=np.eye(2) * sigma**2)
+        else:
+            self.blind += 1
+        return is_branch0, clear
 
 
 class TargetTrack:
@@ -308,7 +324,7 @@ class TargetTrack:
         self.config = config
         self.points = np.asarray(points_in_target, dtype=np.float64)
         self.branches: list[RotationFilter | None] | None = None  # None: no track
-        self.motions: list[_Motion | None] = [None, None]
+        self.tilts: _TiltTracker | None = None
         self._pending_events: list[TrackEvent] = []
         self.doubtful = False
         self.output_branch = 0
@@ -358,8 +374,9 @@ class TargetTrack:
                 self.evidence.clear()
 
     def _best_guess(self) -> int:
-        """While ambiguous: keep the current output branch unless the evidence leans the other way."""
-        bound = self._evidence_bound(0.0, 1.0)
+        """While ambiguous: keep the current output branch (a steady guess) unless the evidence leans the
+        other way by half the decision margin with 2 standard errors: not enough to vouch for, enough to prefer."""
+        bound = self._evidence_bound(0.5 * self.config.decide_margin_px, 2.0)
         if bound == 0.0 or self.branches is None or self.branches[0 if bound > 0 else 1] is None:
             return self.output_branch
         return 0 if bound > 0 else 1
@@ -404,10 +421,10 @@ class TargetTrack:
         cfg = self.config
         hypotheses = measurement.hypotheses
         self.branches = [self._new_branch(h.pose, camera) for h in hypotheses]
-        self.motions = [_Motion(h.pose.rotation) for h in hypotheses]
+        self.tilts = _TiltTracker(tilt_of(hypotheses[0].pose), self._tilt_sigma(hypotheses[0].pose, camera),
+                                  cfg.tilt_accel_rad_s2)
         if len(self.branches) == 1:
             self.branches.append(None)  # the other solution failed validation: unknown until it shows up
-            self.motions.append(None)
         self.output_branch = 0
         self.committed = None
         self.evidence.clear()
@@ -431,53 +448,33 @@ class TargetTrack:
         return RotationFilter(pose.rotation, cov_rot, self.config.still_rotation_rad_sqrt_s,
                               self.config.angular_accel_moving_rad_s2)
 
+    def _tilt_sigma(self, pose: Pose, camera: CameraModel) -> float:
+        cov_rot, _ = pose_covariance(pose, self.points, camera, self.sigma_px)
+        return math.sqrt(float(np.max(np.linalg.eigvalsh(cov_rot))))
+
     def _associate(self, measurement: MarkerPose, camera: CameraModel, dt: float) -> list[PoseHypothesis | None]:
-        """Assign this frame's solutions to the two branches by distance to their predicted raw motion."""
-        assert self.branches is not None
+        """Assign this frame's solutions to the branches: branch 0 is the one whose tilt continues
+        the tilt tracker's prediction (see :class:`_TiltTracker`)."""
+        assert self.branches is not None and self.tilts is not None
         hypotheses = measurement.hypotheses
-        predicted = [m.predicted(dt) if m is not None else None for m in self.motions]
+        self.tilts.predict(dt)
+        first = hypotheses[0]
+        is_branch0, clear = self.tilts.choose(tilt_of(first.pose), self._tilt_sigma(first.pose, camera))
         assigned: list[PoseHypothesis | None] = [None, None]
         if len(hypotheses) == 1:
-            distances = [angle_between_deg(p, hypotheses[0].pose.rotation) if p is not None else math.inf
-                         for p in predicted]
-            assigned[int(np.argmin(distances))] = hypotheses[0]
-        elif any(p is None for p in predicted):  # a second solution shows up for the first time: it starts the unknown branch
-            index = 0 if predicted[0] is not None else 1
-            near = min(hypotheses, key=lambda h: angle_between_deg(predicted[index], h.pose.rotation))
-            far = hypotheses[1] if near is hypotheses[0] else hypotheses[0]
-            self.branches[1 - index] = self._new_branch(far.pose, camera)
-            self.motions[1 - index] = _Motion(far.pose.rotation)
-            assigned[index], assigned[1 - index] = near, far
+            assigned[0 if is_branch0 else 1] = first
         else:
-            a, b = hypotheses[0].pose.rotation, hypotheses[1].pose.rotation
-            straight = angle_between_deg(predicted[0], a) + angle_between_deg(predicted[1], b)
-            crossed = angle_between_deg(predicted[0], b) + angle_between_deg(predicted[1], a)
-            assigned = [hypotheses[0], hypotheses[1]] if straight <= crossed else [hypotheses[1], hypotheses[0]]
-        for motion, hypothesis in zip(self.motions, assigned):
-            if motion is None:
-                continue
-            if hypothesis is not None:
-                motion.observe(hypothesis.pose.rotation, dt, math.radians(self.config.max_output_step_deg))
-            else:
-                motion.coast(dt)
-        if len(hypotheses) == 2:
-            self._check_crossing(hypotheses, camera)
-        return assigned
-
-    def _check_crossing(self, hypotheses: tuple[PoseHypothesis, ...], camera: CameraModel) -> None:
-        """Where the two solutions meet (a view through fronto-parallel), which branch is which is
-        lost in the noise: a commitment made before says nothing about the branches after."""
-        separation = angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation)
-        cov_rot, _ = pose_covariance(hypotheses[0].pose, self.points, camera, self.sigma_px)
-        noise_deg = float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov_rot)))))
-        merged = separation < max(self.config.merge_angle_deg, 3.0 * noise_deg)
-        if merged and self.committed is not None:
+            assigned = [hypotheses[0], hypotheses[1]] if is_branch0 else [hypotheses[1], hypotheses[0]]
+            missing = [i for i, b in enumerate(self.branches) if b is None]
+            for index in missing:  # a second solution shows up for the first time: it starts its branch
+                self.branches[index] = self._new_branch(assigned[index].pose, camera)
+        if not clear and self.tilts.blind > self.config.crossing_blind_frames and self.committed is not None:
             self._pending_events.append(TrackEvent(
-                "uncommit", f"the two solutions meet ({separation:.1f} deg apart): which is which is "
-                            "undecided again"))
+                "uncommit", f"the two solutions stayed indistinguishable for {self.tilts.blind} frames: "
+                            "which is which is undecided again"))
             self.committed = None
-        if merged:
             self.evidence.clear()
+        return assigned
 
     def _add_evidence(self, assigned: list[PoseHypothesis | None]) -> None:
         cfg = self.config
@@ -542,9 +539,8 @@ class TargetTrack:
         for branch in self.branches:
             if branch is not None:
                 branch.predict(dt)
-        for motion in self.motions:
-            if motion is not None:
-                motion.coast(dt)
+        if self.tilts is not None:
+            self.tilts.predict(dt)
         self.translation_filter.predict(dt)
         return self._result("predicted", (None, None), events)
 
