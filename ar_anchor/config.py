@@ -134,8 +134,8 @@ class FilterConfig:
     still_translation_m_sqrt_s: float = 1e-5
     angular_accel_moving_rad_s2: float = 30.0  # white acceleration of the "moving" motion model
     linear_accel_moving_m_s2: float = 5.0
-    window: int = 30  # frames of flip evidence kept
-    decide_margin_px: float = 0.1  # error differences below this never decide (detector bias)
+    window: int = 60  # frames of flip evidence kept
+    decide_margin_px: float = 0.06  # error differences below this never decide (detector bias)
     decide_z: float = 3.0  # standard errors of confidence to commit
     switch_margin_px: float = 0.3  # stronger evidence needed to leave a committed branch
     switch_z: float = 5.0

@@ -351,8 +351,12 @@ class TargetTrack:
             return 0.0
         values = np.fromiter(self.evidence, dtype=np.float64)
         mean = float(values.mean())
-        spread = float(values.std(ddof=1)) if values.size > 1 else 0.0
-        stderr = max(spread, self.config.evidence_noise_px) / math.sqrt(values.size)
+        # per-frame spread, shrunk toward the configured floor as if it were a few frames of prior data:
+        # one or two frames cannot claim to be precise, thirty consistent ones can
+        prior = 5.0
+        squares = float(np.sum((values - mean) ** 2)) + prior * self.config.evidence_noise_px**2
+        spread = math.sqrt(squares / (values.size - 1 + prior))
+        stderr = spread / math.sqrt(values.size)
         bound = abs(mean) - z * stderr - margin
         return math.copysign(bound, mean) if bound > 0 else 0.0
 
@@ -468,7 +472,12 @@ class TargetTrack:
             missing = [i for i, b in enumerate(self.branches) if b is None]
             for index in missing:  # a second solution shows up for the first time: it starts its branch
                 self.branches[index] = self._new_branch(assigned[index].pose, camera)
-        if not clear and self.tilts.blind > self.config.crossing_blind_frames and self.committed is not None:
+        # Blind for long while the solutions are far apart: which is which may have been lost. (While they
+        # are within flip_angle_deg of each other either one is close enough, so blindness costs nothing.)
+        apart = len(hypotheses) == 2 and angle_between_deg(
+            hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
+        if (not clear and apart and self.tilts.blind > self.config.crossing_blind_frames
+                and self.committed is not None):
             self._pending_events.append(TrackEvent(
                 "uncommit", f"the two solutions stayed indistinguishable for {self.tilts.blind} frames: "
                             "which is which is undecided again"))
@@ -563,6 +572,11 @@ class TargetTrack:
             self.output_rotation = previous @ so3_exp(step * (limit / angle))
         return self.output_rotation
 
+    def _too_uncertain(self, branch: RotationFilter) -> bool:
+        """3 sigma of the filtered orientation beyond flip_angle_deg."""
+        sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(branch.cv.P[:3, :3]))), 0.0))
+        return math.degrees(3.0 * sigma) > self.config.flip_angle_deg
+
     def _result(self, state: str, hypotheses: tuple[Pose | None, Pose | None],
                 events: list[TrackEvent]) -> TrackUpdate:
         assert self.branches is not None and self.translation_filter is not None
@@ -573,7 +587,9 @@ class TargetTrack:
         self.output_translation = translation
         rotation = self._output(branch.rotation, moved)
         pose = Pose.from_matrix(rotation, translation)
-        if state == "tracked" and (self.slewing or self.doubtful):
-            state = "ambiguous"  # turning toward the committed branch, or a rejected flip: not vouched for
+        if state == "tracked" and (self.slewing or self.doubtful or self._too_uncertain(branch)):
+            # turning toward the committed branch, a rejected flip, or an orientation so noisy that even the
+            # right branch may be off by a flip's worth: not vouched for
+            state = "ambiguous"
         return TrackUpdate(state, pose, self.output_branch, self.committed is not None,
                            self._evidence_bound(0.0, 0.0), hypotheses, tuple(events))
