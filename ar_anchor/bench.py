@@ -54,27 +54,59 @@ class Scenario:
     def trajectory(self) -> Trajectory:
         seconds = self.frames / 30.0
         if self.motion == "static":
-            return Trajectory(kind="static", near_m=self.distance_m, azimuth_deg=self.tilt_deg, elevation_deg=0.0,
-                              roll_deg=0.0)
+            return Trajectory(
+                kind="static", near_m=self.distance_m, azimuth_deg=self.tilt_deg, elevation_deg=0.0, roll_deg=0.0
+            )
         if self.motion == "wobble":  # nearly fronto-parallel, small hand-held motion
-            return Trajectory(kind="orbit", near_m=self.distance_m, azimuth_deg=self.tilt_deg + 4.0, elevation_deg=3.0,
-                              roll_deg=2.0, cycles=1.0)
+            return Trajectory(
+                kind="orbit",
+                near_m=self.distance_m,
+                azimuth_deg=self.tilt_deg + 4.0,
+                elevation_deg=3.0,
+                roll_deg=2.0,
+                cycles=1.0,
+            )
         if self.motion == "orbit":  # about 45 deg/s at the peak
-            return Trajectory(kind="orbit", near_m=self.distance_m, azimuth_deg=35.0, elevation_deg=15.0,
-                              roll_deg=10.0, cycles=seconds * 45.0 / (2 * math.pi * 35.0))
+            return Trajectory(
+                kind="orbit",
+                near_m=self.distance_m,
+                azimuth_deg=35.0,
+                elevation_deg=15.0,
+                roll_deg=10.0,
+                cycles=seconds * 45.0 / (2 * math.pi * 35.0),
+            )
         if self.motion == "fast":  # 90 deg/s at the peak
-            return Trajectory(kind="orbit", near_m=self.distance_m, azimuth_deg=45.0, elevation_deg=5.0,
-                              roll_deg=0.0, cycles=seconds * 90.0 / (2 * math.pi * 45.0))
+            return Trajectory(
+                kind="orbit",
+                near_m=self.distance_m,
+                azimuth_deg=45.0,
+                elevation_deg=5.0,
+                roll_deg=0.0,
+                cycles=seconds * 90.0 / (2 * math.pi * 45.0),
+            )
         if self.motion == "sweep":
-            return Trajectory(kind="sweep", near_m=self.distance_m, far_m=self.far_m or self.distance_m * 4,
-                              azimuth_deg=30.0, elevation_deg=15.0, roll_deg=10.0, cycles=1.0)
+            return Trajectory(
+                kind="sweep",
+                near_m=self.distance_m,
+                far_m=self.far_m or self.distance_m * 4,
+                azimuth_deg=30.0,
+                elevation_deg=15.0,
+                roll_deg=10.0,
+                cycles=1.0,
+            )
         raise ValueError(f"unknown motion {self.motion!r}")
 
     def scene(self, camera: CameraModel, dictionary: str = "DICT_4X4_50") -> SyntheticScene:
         return SyntheticScene(
-            camera=camera, dictionary=dictionary, markers=(PlacedMarker(0, self.marker_m, Pose.identity()),),
-            trajectory=self.trajectory(), frames=self.frames, seed=self.seed, noise_sigma=self.noise,
-            blur_sigma=self.blur, hidden=self.hidden,
+            camera=camera,
+            dictionary=dictionary,
+            markers=(PlacedMarker(0, self.marker_m, Pose.identity()),),
+            trajectory=self.trajectory(),
+            frames=self.frames,
+            seed=self.seed,
+            noise_sigma=self.noise,
+            blur_sigma=self.blur,
+            hidden=self.hidden,
         )
 
 
@@ -134,8 +166,11 @@ def _series_metrics(poses: list[Pose | None], truth: list[Pose | None], moving: 
         "trans_median_pct": float(np.median(trans)),
     }
     twitches = sum(
-        1 for a, b in zip(poses, poses[1:])
-        if a is not None and b is not None and angle_between_deg(a.rotation, b.rotation) > FLIP_DEG
+        1
+        for a, b in zip(poses, poses[1:])
+        if a is not None
+        and b is not None
+        and angle_between_deg(a.rotation, b.rotation) > FLIP_DEG
         and np.linalg.norm(a.tvec - b.tvec) < 0.01
     )
     out["twitches"] = twitches
@@ -146,8 +181,11 @@ def _series_metrics(poses: list[Pose | None], truth: list[Pose | None], moving: 
     if moving:
         lags = []
         for lag in range(0, 7):
-            errors = [angle_between_deg(poses[i].rotation, truth[i - lag].rotation)
-                      for i in range(lag, len(poses)) if poses[i] is not None and truth[i - lag] is not None]
+            errors = [
+                angle_between_deg(poses[i].rotation, truth[i - lag].rotation)
+                for i in range(lag, len(poses))
+                if poses[i] is not None and truth[i - lag] is not None
+            ]
             lags.append(float(np.median(errors)) if errors else math.inf)
         out["lag_frames"] = int(np.argmin(lags))
     return out
@@ -163,20 +201,24 @@ def evaluate(run: ScenarioRun, config: TrackerConfig | None = None) -> dict[str,
         "tracker": _series_metrics(run.output, run.truth, moving),
     }
     states = [s for s in run.state if s]
-    errors = [angle_between_deg(p.rotation, t.rotation) if p is not None and t is not None else math.nan
-              for p, t in zip(run.output, run.truth)]
+    errors = [
+        angle_between_deg(p.rotation, t.rotation) if p is not None and t is not None else math.nan
+        for p, t in zip(run.output, run.truth)
+    ]
     tracked_errors = [e for e, s in zip(errors, run.state) if s == "tracked" and math.isfinite(e)]
     first_output = next((i for i, s in enumerate(run.state) if s), None)
     first_tracked = next((i for i, s in enumerate(run.state) if s == "tracked"), None)
     deltas = np.array([d for d in run.delta_px if math.isfinite(d)])
-    result["tracker"].update({
-        "tracked_pct": 100.0 * states.count("tracked") / len(states) if states else 0.0,
-        "ambiguous_pct": 100.0 * states.count("ambiguous") / len(states) if states else 0.0,
-        "predicted_pct": 100.0 * states.count("predicted") / len(states) if states else 0.0,
-        "wrong_tracked_pct": 100.0 * float(np.mean(np.array(tracked_errors) > FLIP_DEG)) if tracked_errors else 0.0,
-        "frames_to_commit": None if first_tracked is None or first_output is None else first_tracked - first_output,
-        "track_ms_median": float(np.median(run.track_ms)) if run.track_ms else None,
-    })
+    result["tracker"].update(
+        {
+            "tracked_pct": 100.0 * states.count("tracked") / len(states) if states else 0.0,
+            "ambiguous_pct": 100.0 * states.count("ambiguous") / len(states) if states else 0.0,
+            "predicted_pct": 100.0 * states.count("predicted") / len(states) if states else 0.0,
+            "wrong_tracked_pct": 100.0 * float(np.mean(np.array(tracked_errors) > FLIP_DEG)) if tracked_errors else 0.0,
+            "frames_to_commit": None if first_tracked is None or first_output is None else first_tracked - first_output,
+            "track_ms_median": float(np.median(run.track_ms)) if run.track_ms else None,
+        }
+    )
     result["detected_pct"] = 100.0 * sum(p is not None for p in run.raw) / max(len(run.raw), 1)
     result["delta_median_px"] = float(np.median(deltas)) if deltas.size else None
     result["delta_p90_px"] = float(np.percentile(deltas, 90)) if deltas.size else None
@@ -184,8 +226,11 @@ def evaluate(run: ScenarioRun, config: TrackerConfig | None = None) -> dict[str,
     # outright (then there is only one solution: no delta at all)
     measured = [d for d, s in zip(run.delta_px, run.state) if s and s != "predicted"]
     single = sum(1 for d in measured if not math.isfinite(d))
-    result["decidable"] = bool(deltas.size == 0 or np.percentile(deltas, 90) > config.filter.decide_margin_px
-                               or single > 0.1 * max(len(measured), 1))
+    result["decidable"] = bool(
+        deltas.size == 0
+        or np.percentile(deltas, 90) > config.filter.decide_margin_px
+        or single > 0.1 * max(len(measured), 1)
+    )
     return result
 
 
@@ -206,8 +251,14 @@ def stability_scenarios(quick: bool = False) -> list[Scenario]:
         Scenario("orbit 4cm 2m", 0.04, 2.0, "orbit", frames=frames),
         Scenario("fast 8cm 0.8m 90deg/s", 0.08, 0.8, "fast", frames=frames),
         Scenario("sweep 6cm 0.4-3m", 0.06, 0.4, "sweep", far_m=3.0, frames=frames),
-        Scenario("orbit 6cm 1m dropouts", 0.06, 1.0, "orbit", frames=frames,
-                 hidden=((frames // 3, frames // 3 + 6), (2 * frames // 3, 2 * frames // 3 + 20))),
+        Scenario(
+            "orbit 6cm 1m dropouts",
+            0.06,
+            1.0,
+            "orbit",
+            frames=frames,
+            hidden=((frames // 3, frames // 3 + 6), (2 * frames // 3, 2 * frames // 3 + 20)),
+        ),
     ]
     return grid[::2] if quick else grid
 
@@ -222,30 +273,38 @@ def _fmt(value: Any, digits: int = 2) -> str:
 
 def stability_table(results: list[dict[str, Any]]) -> str:
     """Markdown table: raw vs tracker per scenario."""
-    header = ("| scenario | det % | Δ median px | flipped % raw / trk | rot med deg raw / trk | rot p95 deg raw / trk "
-              "| trans med % raw / trk | jitter deg raw / trk | lag frames raw / trk | twitches raw / trk "
-              "| tracked / ambiguous / predicted % | wrong tracked % | frames to commit |")
+    header = (
+        "| scenario | det % | Δ median px | flipped % raw / trk | rot med deg raw / trk | rot p95 deg raw / trk "
+        "| trans med % raw / trk | jitter deg raw / trk | lag frames raw / trk | twitches raw / trk "
+        "| tracked / ambiguous / predicted % | wrong tracked % | frames to commit |"
+    )
     lines = [header, "|" + "|".join(["---"] * 13) + "|"]
     for r in results:
         raw, trk = r["raw"], r["tracker"]
 
-        def pair(key: str, digits: int = 2) -> str:
+        def pair(key: str, digits: int = 2, raw: dict = raw, trk: dict = trk) -> str:
             return f"{_fmt(raw.get(key), digits)} / {_fmt(trk.get(key), digits)}"
 
+        states = " / ".join(_fmt(trk.get(k), 0) for k in ("tracked_pct", "ambiguous_pct", "predicted_pct"))
         name = r["scenario"]["name"] + ("" if r["decidable"] else " (undecidable)")
         lines.append(
             f"| {name} | {_fmt(r['detected_pct'], 0)} | {_fmt(r['delta_median_px'], 3)} | {pair('flipped_pct', 1)} "
             f"| {pair('rot_median_deg')} | {pair('rot_p95_deg', 1)} | {pair('trans_median_pct')} "
             f"| {pair('jitter_deg', 3)} | {pair('lag_frames', 0)} | {pair('twitches', 0)} "
-            f"| {_fmt(trk.get('tracked_pct'), 0)} / {_fmt(trk.get('ambiguous_pct'), 0)} / {_fmt(trk.get('predicted_pct'), 0)} "
+            f"| {states} "
             f"| {_fmt(trk.get('wrong_tracked_pct'), 1)} | {_fmt(trk.get('frames_to_commit'), 0)} |"
         )
     return "\n".join(lines)
 
 
 def write_stability_report(
-    out_dir: Path, *, quick: bool = False, config: TrackerConfig | None = None, camera: CameraModel | None = None,
-    progress: Callable[[int, int, str], None] | None = None, command: str = "ar-anchor bench stability",
+    out_dir: Path,
+    *,
+    quick: bool = False,
+    config: TrackerConfig | None = None,
+    camera: CameraModel | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+    command: str = "ar-anchor bench stability",
 ) -> list[dict[str, Any]]:
     """Run the grid, write ``stability.md`` and ``stability.json`` to ``out_dir``, return the results."""
     config = config or TrackerConfig()
@@ -259,8 +318,14 @@ def write_stability_report(
         results.append(evaluate(run_scenario(scenario, config, camera), config))
     wall = time.perf_counter() - start
     out_dir.mkdir(parents=True, exist_ok=True)
-    meta = {"command": command, "wall_time_s": wall, "camera": f"{camera.width}x{camera.height} fx={camera.camera_matrix[0, 0]:g}",
-            "python": platform.python_version(), "machine": platform.machine(), "frames_per_scenario": scenarios[0].frames}
+    meta = {
+        "command": command,
+        "wall_time_s": wall,
+        "camera": f"{camera.width}x{camera.height} fx={camera.camera_matrix[0, 0]:g}",
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "frames_per_scenario": scenarios[0].frames,
+    }
     (out_dir / "stability.json").write_text(json.dumps({"meta": meta, "results": results}, indent=2) + "\n")
     text = [
         "# Stability benchmark: raw per-frame IPPE vs. the tracker",
@@ -272,7 +337,8 @@ def write_stability_report(
         "reprojects (px, median over frames); a scenario is *undecidable* when even its 90th percentile stays "
         "below the filter's decision margin (corner-detector bias level), so no amount of evidence can decide: "
         "the tracker then says `ambiguous` and holds its best guess. *jitter*: RMS orientation around the mean "
-        "(static scenes, after the first second, for both pipelines). *lag*: shift in frames that best aligns output with truth (moving scenes). "
+        "(static scenes, after the first second, for both pipelines). *lag*: shift in frames that best aligns "
+        "output with truth (moving scenes). "
         "*twitches*: consecutive outputs more than 10 deg apart with less than 1 cm of motion.",
         "",
         stability_table(results),

@@ -54,9 +54,7 @@ class CameraModel:
             raise CameraError("camera_matrix: last row must be [0, 0, 1] and K[1][0] must be 0")
         dist = np.asarray(self.dist_coeffs, dtype=np.float64).reshape(-1)
         if dist.size not in _DIST_LENGTHS:
-            raise CameraError(
-                f"distortion_coefficients: expected 4, 5, 8, 12 or 14 values (or none), got {dist.size}"
-            )
+            raise CameraError(f"distortion_coefficients: expected 4, 5, 8, 12 or 14 values (or none), got {dist.size}")
         if not np.all(np.isfinite(dist)):
             raise CameraError("distortion_coefficients: contains non-finite values")
         if not (isinstance(self.width, (int, np.integer)) and isinstance(self.height, (int, np.integer))):
@@ -166,7 +164,11 @@ class CameraModel:
         log.log(
             logging.WARNING if warn else logging.DEBUG,
             "camera calibrated at %dx%d used at %dx%d: scaling intrinsics by %.4g",
-            self.width, self.height, width, height, sx,
+            self.width,
+            self.height,
+            width,
+            height,
+            sx,
         )
         k = np.array(self.camera_matrix)
         k[0, 0] *= sx

@@ -66,10 +66,20 @@ _non_negative_float = _float_above(0.0, inclusive=True)
 def _add_common_options(parser: argparse.ArgumentParser, *, defaults: bool) -> None:
     """-v / -q, accepted before and after the command name (the command's copy sets no default,
     so ``ar-anchor -q demo`` is not undone by the subparser)."""
-    parser.add_argument("-v", "--verbose", action="count", default=0 if defaults else argparse.SUPPRESS,
-                        help="more log output (-vv for debug)")
-    parser.add_argument("-q", "--quiet", action="store_true", default=False if defaults else argparse.SUPPRESS,
-                        help="no progress bar or summary table")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0 if defaults else argparse.SUPPRESS,
+        help="more log output (-vv for debug)",
+    )
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=False if defaults else argparse.SUPPRESS,
+        help="no progress bar or summary table",
+    )
 
 
 def _add_command(commands: Any, name: str, help_text: str, description: str) -> argparse.ArgumentParser:
@@ -97,17 +107,27 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     demo = _add_command(
-        commands, "demo", "track a built-in synthetic scene with exact ground truth (no camera needed)",
+        commands,
+        "demo",
+        "track a built-in synthetic scene with exact ground truth (no camera needed)",
         "Render a synthetic scene (lone markers and a 2x2 board, the camera sweeping from near "
         "to far), track it, and write poses.csv, summary.json and recording.rrd.",
     )
     demo.add_argument("--frames", type=_int_at_least(1), default=300, help="frames to render (default 300)")
     demo.add_argument("--seed", type=_int_at_least(0), default=0, help="seed of scene texture and noise (default 0)")
-    demo.add_argument("--camera", type=Path, default=None,
-                      help="camera YAML to render with (default: configs/camera_synthetic.yml values)")
+    demo.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        help="camera YAML to render with (default: configs/camera_synthetic.yml values)",
+    )
     _add_tracker_options(demo)
-    demo.add_argument("--trajectory", choices=("sweep", "orbit", "static"), default="sweep",
-                      help="camera path (default sweep: near to far)")
+    demo.add_argument(
+        "--trajectory",
+        choices=("sweep", "orbit", "static"),
+        default="sweep",
+        help="camera path (default sweep: near to far)",
+    )
     demo.add_argument("--near", type=_positive_float, default=0.35, help="nearest camera distance, metres")
     demo.add_argument("--far", type=_positive_float, default=3.0, help="farthest camera distance, metres")
     demo.add_argument("--noise", type=_non_negative_float, default=2.0, help="sensor noise sigma, grey levels")
@@ -116,57 +136,92 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=cmd_demo)
 
     replay = _add_command(
-        commands, "replay", "track a video file, an image folder or a glob of images",
+        commands,
+        "replay",
+        "track a video file, an image folder or a glob of images",
         "Track every frame of a video file (container timestamps), an image folder or a glob "
         "(natural order, --fps timestamps) and write poses.csv, summary.json and recording.rrd.",
     )
-    replay.add_argument("source", metavar="SOURCE", help="video file, image folder, or a quoted glob such as 'shots/*.png'")
-    replay.add_argument("--camera", type=Path, default=None,
-                        help="camera YAML (default: camera.yml beside SOURCE, as `live --record` writes it)")
+    replay.add_argument(
+        "source", metavar="SOURCE", help="video file, image folder, or a quoted glob such as 'shots/*.png'"
+    )
+    replay.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        help="camera YAML (default: camera.yml beside SOURCE, as `live --record` writes it)",
+    )
     _add_tracker_options(replay)
     replay.add_argument("--fps", type=_positive_float, default=30.0, help="frame rate of image folders (default 30)")
     _add_run_options(replay, "replay")
     replay.set_defaults(func=cmd_replay)
 
     live = _add_command(
-        commands, "live", "track a V4L2 webcam (or --device synthetic) live; view it in rerun",
+        commands,
+        "live",
+        "track a V4L2 webcam (or --device synthetic) live; view it in rerun",
         "Track a live camera. The live view is the rerun viewer (--spawn, or --connect to a running "
         "one); outputs are written as the run goes and finalised on Ctrl-C.",
     )
-    live.add_argument("--device", default="/dev/video0",
-                      help="V4L2 device path or index, or 'synthetic' for the demo scene in real time (default /dev/video0)")
+    live.add_argument(
+        "--device",
+        default="/dev/video0",
+        help="V4L2 device path or index, or 'synthetic' for the demo scene in real time (default /dev/video0)",
+    )
     live.add_argument("--camera", type=Path, default=None, help="camera YAML (required for a real camera)")
     _add_tracker_options(live)
     live.add_argument("--width", type=_int_at_least(1), default=None, help="requested frame width")
     live.add_argument("--height", type=_int_at_least(1), default=None, help="requested frame height")
     live.add_argument("--fps", type=_positive_float, default=None, help="requested frame rate (synthetic: 30)")
     live.add_argument("--fourcc", default="MJPG", help="requested pixel format (default MJPG, when offered)")
-    live.add_argument("--queue", type=_int_at_least(1), default=1,
-                      help="frames waiting for the tracker at most; older ones are dropped (default 1: newest only)")
-    live.add_argument("--reconnect-s", type=_non_negative_float, default=5.0,
-                      help="keep trying to reopen a vanished device this long (default 5 s)")
-    live.add_argument("--stall-s", type=_positive_float, default=10.0,
-                      help="end the run when no frame arrives for this long (default 10 s)")
+    live.add_argument(
+        "--queue",
+        type=_int_at_least(1),
+        default=1,
+        help="frames waiting for the tracker at most; older ones are dropped (default 1: newest only)",
+    )
+    live.add_argument(
+        "--reconnect-s",
+        type=_non_negative_float,
+        default=5.0,
+        help="keep trying to reopen a vanished device this long (default 5 s)",
+    )
+    live.add_argument(
+        "--stall-s",
+        type=_positive_float,
+        default=10.0,
+        help="end the run when no frame arrives for this long (default 10 s)",
+    )
     live.add_argument("--seed", type=_int_at_least(0), default=0, help="synthetic device: scene seed")
-    live.add_argument("--record", action="store_true",
-                      help="also save the processed frames losslessly (raw.mkv + timestamps) for frame-exact replay")
+    live.add_argument(
+        "--record",
+        action="store_true",
+        help="also save the processed frames losslessly (raw.mkv + timestamps) for frame-exact replay",
+    )
     _add_run_options(live, "live", spawn=False)
     viewer = live.add_mutually_exclusive_group()
     viewer.add_argument("--spawn", action="store_true", help="start a rerun viewer and stream to it")
-    viewer.add_argument("--connect", metavar="URL", default=None,
-                        help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
+    viewer.add_argument(
+        "--connect",
+        metavar="URL",
+        default=None,
+        help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
+    )
     live.set_defaults(func=cmd_live)
 
     bench = _add_command(
-        commands, "bench", "benchmarks on synthetic ground truth",
+        commands,
+        "bench",
+        "benchmarks on synthetic ground truth",
         "stability: raw per-frame IPPE vs. the tracker over a grid of synthetic scenarios "
         "(flips, errors, jitter, lag, time to commit), written as markdown and JSON.",
     )
     bench.add_argument("name", choices=("stability",), help="which benchmark")
     bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
     bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
-    bench.add_argument("--out", type=Path, default=Path("bench") / "results",
-                       help="output directory (default bench/results)")
+    bench.add_argument(
+        "--out", type=Path, default=Path("bench") / "results", help="output directory (default bench/results)"
+    )
     bench.set_defaults(func=cmd_bench)
     return parser
 
@@ -174,10 +229,14 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
     parser.add_argument("--dictionary", default=None, help="override [detector] dictionary, e.g. DICT_ARUCO_ORIGINAL")
-    parser.add_argument("--marker-length", type=_positive_float, default=None,
-                        help="override [markers] length_m: marker side in metres")
-    parser.add_argument("--no-filter", action="store_true",
-                        help="the raw per-frame pipeline: lower-error IPPE solution, no flip resolution or smoothing")
+    parser.add_argument(
+        "--marker-length", type=_positive_float, default=None, help="override [markers] length_m: marker side in metres"
+    )
+    parser.add_argument(
+        "--no-filter",
+        action="store_true",
+        help="the raw per-frame pipeline: lower-error IPPE solution, no flip resolution or smoothing",
+    )
 
 
 # ---------------------------------------------------------------------------- commands
@@ -221,8 +280,11 @@ class _LiveStatus:
 
     def __call__(self, done: int, _total: int | None, result: Any = None) -> None:
         if result is not None and result.latency_ms:
-            self.latency_ms = 0.9 * self.latency_ms + 0.1 * sum(result.latency_ms.values()) if done > 1 else sum(
-                result.latency_ms.values())
+            self.latency_ms = (
+                0.9 * self.latency_ms + 0.1 * sum(result.latency_ms.values())
+                if done > 1
+                else sum(result.latency_ms.values())
+            )
         now = time.monotonic()
         if not self.enabled or now - self.last < 0.5:
             return
@@ -245,9 +307,11 @@ def _load_tracker_config(args: argparse.Namespace):  # noqa: ANN202
     from .config import load_config
 
     config = load_config(args.config)
-    return config.with_overrides(dictionary=getattr(args, "dictionary", None),
-                                 marker_length_m=getattr(args, "marker_length", None),
-                                 filter_enabled=False if getattr(args, "no_filter", False) else None)
+    return config.with_overrides(
+        dictionary=getattr(args, "dictionary", None),
+        marker_length_m=getattr(args, "marker_length", None),
+        filter_enabled=False if getattr(args, "no_filter", False) else None,
+    )
 
 
 def _camera_for_source(camera: Any, resolution: tuple[int, int], option: str) -> Any:
@@ -281,17 +345,29 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise InputError(f"--far {args.far} must not be below --near {args.near}")
     trajectory = Trajectory(kind=args.trajectory, near_m=args.near, far_m=args.far, look_at=(-0.01, 0.0, 0.0))
     try:
-        scene = demo_scene(config, camera, frames=args.frames, seed=args.seed, trajectory=trajectory,
-                           noise_sigma=args.noise, blur_sigma=args.blur)
+        scene = demo_scene(
+            config,
+            camera,
+            frames=args.frames,
+            seed=args.seed,
+            trajectory=trajectory,
+            noise_sigma=args.noise,
+            blur_sigma=args.blur,
+        )
     except SourceError as err:
         raise SourceError(f"--camera {args.camera}: {err}") from None
-    options = RunOptions(max_frames=args.max_frames, spawn=args.spawn, recording_name="ar_anchor demo",
-                         extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory})
+    options = RunOptions(
+        max_frames=args.max_frames,
+        spawn=args.spawn,
+        recording_name="ar_anchor demo",
+        extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory},
+    )
     progress = _Progress(not args.quiet, "demo")
     try:
         with SyntheticSource(scene) as source:
-            outputs = run_session(source, Tracker(config, camera), args.out or _default_out("demo"), options,
-                                  progress=progress)
+            outputs = run_session(
+                source, Tracker(config, camera), args.out or _default_out("demo"), options, progress=progress
+            )
     finally:
         progress.close()
     return _finish(args, outputs)
@@ -311,26 +387,40 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if camera_path is None:
             beside = Path(args.source).parent / "camera.yml"
             if not beside.is_file():
-                raise CameraError(f"--camera FILE is required: the calibration of the camera that took {args.source} "
-                                  f"(none found at {beside})")
+                raise CameraError(
+                    f"--camera FILE is required: the calibration of the camera that took {args.source} "
+                    f"(none found at {beside})"
+                )
             log.warning("using %s, found beside the source", beside)
             camera_path = beside
         camera = _camera_for_source(CameraModel.from_yaml(camera_path), source.resolution, f"--camera {camera_path}")
         video = Path(args.source) if getattr(source, "references_original_frames", False) else None
-        options = RunOptions(max_frames=args.max_frames, spawn=args.spawn, recording_name=f"ar_anchor replay {args.source}",
-                             video_asset=video,
-                             extra_summary={"command": "replay", "source": str(args.source)})
+        options = RunOptions(
+            max_frames=args.max_frames,
+            spawn=args.spawn,
+            recording_name=f"ar_anchor replay {args.source}",
+            video_asset=video,
+            extra_summary={"command": "replay", "source": str(args.source)},
+        )
         progress = _Progress(not args.quiet, "replay")
         try:
-            outputs = run_session(source, Tracker(config, camera), args.out or _default_out("replay"), options,
-                                  progress=progress,
-                                  summary_extras=lambda: {"source_ended_early": bool(getattr(source, "ended_early", False))})
+            outputs = run_session(
+                source,
+                Tracker(config, camera),
+                args.out or _default_out("replay"),
+                options,
+                progress=progress,
+                summary_extras=lambda: {"source_ended_early": bool(getattr(source, "ended_early", False))},
+            )
         finally:
             progress.close()
     code = _finish(args, outputs)
     if getattr(source, "ended_early", False):
-        print(f"ar-anchor: error: {args.source}: the stream ended early (damaged or truncated file); outputs cover "
-              f"the {outputs.summary['frames']} frames read before that", file=sys.stderr)
+        print(
+            f"ar-anchor: error: {args.source}: the stream ended early (damaged or truncated file); outputs cover "
+            f"the {outputs.summary['frames']} frames read before that",
+            file=sys.stderr,
+        )
         return EXIT_FAILURE
     return code
 
@@ -354,8 +444,14 @@ def cmd_live(args: argparse.Namespace) -> int:
             except CameraError as err:
                 raise CameraError(f"--width/--height: {err}") from None
         try:
-            scene = demo_scene(config, render_camera, frames=max(int(20 * fps), 2), seed=args.seed, fps=fps,
-                               trajectory=Trajectory(kind="orbit", near_m=0.5, look_at=(-0.01, 0.0, 0.0)))
+            scene = demo_scene(
+                config,
+                render_camera,
+                frames=max(int(20 * fps), 2),
+                seed=args.seed,
+                fps=fps,
+                trajectory=Trajectory(kind="orbit", near_m=0.5, look_at=(-0.01, 0.0, 0.0)),
+            )
         except SourceError as err:
             raise SourceError(f"--camera {args.camera}: {err}") from None
         grabber = SyntheticGrabber(scene, loop=True)
@@ -363,8 +459,9 @@ def cmd_live(args: argparse.Namespace) -> int:
     else:
         grabber = WebcamGrabber(args.device, width=args.width, height=args.height, fps=args.fps, fourcc=args.fourcc)
         device_camera = None
-    source = LiveSource(grabber, queue_size=args.queue, reconnect_s=args.reconnect_s, stall_s=args.stall_s,
-                        camera=device_camera)
+    source = LiveSource(
+        grabber, queue_size=args.queue, reconnect_s=args.reconnect_s, stall_s=args.stall_s, camera=device_camera
+    )
     try:
         if args.camera is None and device_camera is None:
             raise CameraError("--camera FILE is required for a real camera (its calibration: see the README)")
@@ -372,27 +469,40 @@ def cmd_live(args: argparse.Namespace) -> int:
         assert camera_file is not None
         camera = _camera_for_source(camera_file, source.resolution, f"--camera {args.camera}")
         out_dir = args.out or _default_out("live")
-        options = RunOptions(max_frames=args.max_frames, spawn=args.spawn, connect=args.connect,
-                             recording_name=f"ar_anchor live {args.device}", record_raw=args.record, record_fps=fps,
-                             extra_summary={"command": "live", "device": str(args.device),
-                                            "granted": getattr(grabber, "granted", {})})
+        options = RunOptions(
+            max_frames=args.max_frames,
+            spawn=args.spawn,
+            connect=args.connect,
+            recording_name=f"ar_anchor live {args.device}",
+            record_raw=args.record,
+            record_fps=fps,
+            extra_summary={"command": "live", "device": str(args.device), "granted": getattr(grabber, "granted", {})},
+        )
         if args.record:
             Path(out_dir).mkdir(parents=True, exist_ok=True)
             camera.to_yaml(Path(out_dir) / "camera.yml")  # so `ar-anchor replay OUT/raw.mkv` finds it
         status = _LiveStatus(not args.quiet, source.stats)
         try:
             with source:
-                outputs = run_session(source, Tracker(config, camera), out_dir, options, progress=status,
-                                      summary_extras=lambda: {"live": source.stats.as_dict()})
+                outputs = run_session(
+                    source,
+                    Tracker(config, camera),
+                    out_dir,
+                    options,
+                    progress=status,
+                    summary_extras=lambda: {"live": source.stats.as_dict()},
+                )
         finally:
             status.close()
     finally:
         source.close()
     stats = source.stats.as_dict()
     if not args.quiet:
-        print(f"live: {stats['captured']} frames captured, {stats['delivered']} tracked, {stats['dropped_queue']} "
-              f"dropped (tracker busy), {stats['dropped_non_monotonic']} dropped (timestamps)"
-              + (f"; ended: {stats['ended_because']}" if stats["ended_because"] else ""))
+        print(
+            f"live: {stats['captured']} frames captured, {stats['delivered']} tracked, {stats['dropped_queue']} "
+            f"dropped (tracker busy), {stats['dropped_non_monotonic']} dropped (timestamps)"
+            + (f"; ended: {stats['ended_because']}" if stats["ended_because"] else "")
+        )
     return _finish(args, outputs)
 
 
@@ -415,10 +525,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def format_summary(summary: dict[str, Any]) -> str:
     """The run's summary as a small fixed-width table."""
     fps = summary.get("fps")
-    lines = [f"{summary['frames']} frames in {summary['wall_time_s']:.1f} s ({fps:.1f} fps)" if fps else
-             f"{summary['frames']} frames",
-             f"markers found in {summary['frames_with_markers']} of {summary['frames']} frames, "
-             f"a pose in {summary['frames_with_pose']}"]
+    lines = [
+        f"{summary['frames']} frames in {summary['wall_time_s']:.1f} s ({fps:.1f} fps)"
+        if fps
+        else f"{summary['frames']} frames",
+        f"markers found in {summary['frames_with_markers']} of {summary['frames']} frames, "
+        f"a pose in {summary['frames_with_pose']}",
+    ]
     truth = summary.get("ground_truth")
     header = f"{'target':<12} {'detected':>9} {'tracked/ambig/pred':>18}"
     if truth:
@@ -498,8 +611,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     except Exception as err:  # a bug: say so in one line, show the traceback only when asked
         log.debug("internal error", exc_info=True)
-        print(f"ar-anchor: internal error: {type(err).__name__}: {err} (rerun with -vv for the traceback)",
-              file=sys.stderr)
+        print(
+            f"ar-anchor: internal error: {type(err).__name__}: {err} (rerun with -vv for the traceback)",
+            file=sys.stderr,
+        )
         return EXIT_FAILURE
 
 

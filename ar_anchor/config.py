@@ -190,8 +190,9 @@ class TrackerConfig:
             return True
         return not self.markers.ids or marker_id in self.markers.ids
 
-    def with_overrides(self, *, dictionary: str | None = None, marker_length_m: float | None = None,
-                       filter_enabled: bool | None = None) -> TrackerConfig:
+    def with_overrides(
+        self, *, dictionary: str | None = None, marker_length_m: float | None = None, filter_enabled: bool | None = None
+    ) -> TrackerConfig:
         """Copy with command-line overrides applied and validated."""
         import dataclasses
 
@@ -295,7 +296,9 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     except ConfigError as err:
         raise det.fail("dictionary", str(err)) from None
     refinement = det.take(
-        "corner_refinement", str, defaults.detector.corner_refinement,
+        "corner_refinement",
+        str,
+        defaults.detector.corner_refinement,
         lambda v: None if v in CORNER_REFINEMENTS else f"must be one of {', '.join(CORNER_REFINEMENTS)}",
     )
     det.done()
@@ -338,8 +341,11 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         if board.ids and len(board.ids) != board.cols * board.rows:
             raise bd.fail("ids", f"needs cols*rows = {board.cols * board.rows} ids, got {len(board.ids)}")
         if not board.ids and board.first_id + board.cols * board.rows > limit:
-            raise bd.fail("first_id", f"ids {board.first_id}..{board.first_id + board.cols * board.rows - 1} "
-                          f"exceed the dictionary's {limit} markers")
+            raise bd.fail(
+                "first_id",
+                f"ids {board.first_id}..{board.first_id + board.cols * board.rows - 1} "
+                f"exceed the dictionary's {limit} markers",
+            )
         if any(b.name == name for b in boards):
             raise bd.fail("name", "duplicate board name")
         for marker_id in board.marker_ids:
@@ -347,8 +353,11 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
                 raise bd.fail("ids", f"marker id {marker_id} is already used by board '{seen_ids[marker_id]}'")
             seen_ids[marker_id] = name
             if marker_id in lengths and abs(lengths[marker_id] - board.marker_length_m) > 1e-12:
-                raise bd.fail("marker_length_m", f"marker {marker_id} also has [markers.lengths_m] "
-                              f"{lengths[marker_id]:g}; a board marker's size is the board's")
+                raise bd.fail(
+                    "marker_length_m",
+                    f"marker {marker_id} also has [markers.lengths_m] "
+                    f"{lengths[marker_id]:g}; a board marker's size is the board's",
+                )
         boards.append(board)
 
     ps = _Table(root.data.pop("pose", {}), "[pose]", path)
@@ -360,12 +369,13 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     filter_config = FilterConfig(
         enabled=ft.take("enabled", bool, fd.enabled),
         corner_noise_px=ft.take("corner_noise_px", float, fd.corner_noise_px, _positive),
-        still_rotation_rad_sqrt_s=ft.take("still_rotation_rad_sqrt_s", float, fd.still_rotation_rad_sqrt_s,
-                                          _positive),
-        still_translation_m_sqrt_s=ft.take("still_translation_m_sqrt_s", float, fd.still_translation_m_sqrt_s,
-                                           _positive),
-        angular_accel_moving_rad_s2=ft.take("angular_accel_moving_rad_s2", float, fd.angular_accel_moving_rad_s2,
-                                            _positive),
+        still_rotation_rad_sqrt_s=ft.take("still_rotation_rad_sqrt_s", float, fd.still_rotation_rad_sqrt_s, _positive),
+        still_translation_m_sqrt_s=ft.take(
+            "still_translation_m_sqrt_s", float, fd.still_translation_m_sqrt_s, _positive
+        ),
+        angular_accel_moving_rad_s2=ft.take(
+            "angular_accel_moving_rad_s2", float, fd.angular_accel_moving_rad_s2, _positive
+        ),
         linear_accel_moving_m_s2=ft.take("linear_accel_moving_m_s2", float, fd.linear_accel_moving_m_s2, _positive),
         window=ft.take("window", int, fd.window, _in_range(1, 10_000)),
         decide_margin_px=ft.take("decide_margin_px", float, fd.decide_margin_px, _non_negative),
@@ -374,8 +384,9 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         switch_z=ft.take("switch_z", float, fd.switch_z, _non_negative),
         evidence_noise_px=ft.take("evidence_noise_px", float, fd.evidence_noise_px, _positive),
         evidence_cap_px=ft.take("evidence_cap_px", float, fd.evidence_cap_px, _positive),
-        single_solution_evidence_px=ft.take("single_solution_evidence_px", float, fd.single_solution_evidence_px,
-                                            _non_negative),
+        single_solution_evidence_px=ft.take(
+            "single_solution_evidence_px", float, fd.single_solution_evidence_px, _non_negative
+        ),
         motion_weight_px_per_deg=ft.take("motion_weight_px_per_deg", float, fd.motion_weight_px_per_deg, _non_negative),
         max_missed_frames=ft.take("max_missed_frames", int, fd.max_missed_frames, _in_range(0, 100_000)),
         flip_angle_deg=ft.take("flip_angle_deg", float, fd.flip_angle_deg, _in_range(0.0, 180.0)),

@@ -34,7 +34,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from filterpy.kalman import IMMEstimator, KalmanFilter
@@ -123,8 +123,9 @@ class _TwoModeCV:
     State ``[q, q_dot]`` (6), measurement ``q`` (3).
     """
 
-    def __init__(self, x0: np.ndarray, p0: np.ndarray, still_sigma: float, accel_moving: float,
-                 switch_probability: float = 0.02) -> None:
+    def __init__(
+        self, x0: np.ndarray, p0: np.ndarray, still_sigma: float, accel_moving: float, switch_probability: float = 0.02
+    ) -> None:
         self.still_sigma = still_sigma  # random walk of the still model, units / sqrt(s)
         self.accel_moving = accel_moving
         self.filters = []
@@ -152,8 +153,9 @@ class _TwoModeCV:
     def predict(self, dt: float) -> None:
         still, moving = self.filters
         still.F = np.block([[np.eye(3), np.zeros((3, 3))], [np.zeros((3, 3)), np.zeros((3, 3))]])
-        still.Q = np.block([[np.eye(3) * self.still_sigma**2 * dt, np.zeros((3, 3))],
-                            [np.zeros((3, 3)), np.eye(3) * 1e-12]])
+        still.Q = np.block(
+            [[np.eye(3) * self.still_sigma**2 * dt, np.zeros((3, 3))], [np.zeros((3, 3)), np.eye(3) * 1e-12]]
+        )
         moving.F = _cv_transition(dt)
         moving.Q = _cv_process_noise(dt, self.accel_moving)
         self.imm.predict()
@@ -180,13 +182,21 @@ class RotationFilter:
     rotation-vector wrap at 180 degrees.
     """
 
-    def __init__(self, rotation: np.ndarray, rotation_cov: np.ndarray, still_sigma: float, accel_moving: float,
-                 omega: np.ndarray | None = None, omega_sigma: float = 1.0) -> None:
+    def __init__(
+        self,
+        rotation: np.ndarray,
+        rotation_cov: np.ndarray,
+        still_sigma: float,
+        accel_moving: float,
+        omega: np.ndarray | None = None,
+        omega_sigma: float = 1.0,
+    ) -> None:
         self.accels = (still_sigma, accel_moving)
         self.reset(rotation, rotation_cov, omega, omega_sigma)
 
-    def reset(self, rotation: np.ndarray, rotation_cov: np.ndarray, omega: np.ndarray | None = None,
-              omega_sigma: float = 1.0) -> None:
+    def reset(
+        self, rotation: np.ndarray, rotation_cov: np.ndarray, omega: np.ndarray | None = None, omega_sigma: float = 1.0
+    ) -> None:
         self.rotation = np.array(rotation, dtype=np.float64)
         x0 = np.zeros(6)
         if omega is not None:
@@ -366,14 +376,23 @@ class TargetTrack:
             bound = self._evidence_bound(cfg.decide_margin_px, cfg.decide_z)
             if bound != 0.0:
                 self.committed = 0 if bound > 0 else 1
-                events.append(TrackEvent("commit", f"committed to branch {self.committed} after {self.frames} "
-                                                   f"frame(s) (evidence {bound:+.3f} px beyond the margin)"))
+                events.append(
+                    TrackEvent(
+                        "commit",
+                        f"committed to branch {self.committed} after {self.frames} "
+                        f"frame(s) (evidence {bound:+.3f} px beyond the margin)",
+                    )
+                )
         else:
             bound = self._evidence_bound(cfg.switch_margin_px, cfg.switch_z)
             favoured = None if bound == 0.0 else (0 if bound > 0 else 1)
             if favoured is not None and favoured != self.committed:
-                events.append(TrackEvent("switch", f"switched from branch {self.committed} to {favoured} on "
-                                                   f"sustained evidence ({bound:+.3f} px)"))
+                events.append(
+                    TrackEvent(
+                        "switch",
+                        f"switched from branch {self.committed} to {favoured} on sustained evidence ({bound:+.3f} px)",
+                    )
+                )
                 self.committed = favoured
                 self.evidence.clear()
 
@@ -388,7 +407,9 @@ class TargetTrack:
     # ------------------------------------------------------------------ per frame
     def update(self, measurement: MarkerPose | None, timestamp_ns: int, camera: CameraModel) -> TrackUpdate | None:
         """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen)."""
-        dt = 1.0 / 30.0 if self.last_ns is None or timestamp_ns <= self.last_ns else (timestamp_ns - self.last_ns) * 1e-9
+        dt = (
+            1.0 / 30.0 if self.last_ns is None or timestamp_ns <= self.last_ns else (timestamp_ns - self.last_ns) * 1e-9
+        )
         self.last_ns = timestamp_ns
         events: list[TrackEvent] = []
         self._pending_events = events
@@ -415,8 +436,12 @@ class TargetTrack:
         self._decide(events)
         target = self.committed if self.committed is not None else self._best_guess()
         if target != self.output_branch and self.branches is not None and self.branches[target] is not None:
-            events.append(TrackEvent("branch", f"output moves to branch {target}"
-                                               + ("" if self.committed is not None else " (best guess)")))
+            events.append(
+                TrackEvent(
+                    "branch",
+                    f"output moves to branch {target}" + ("" if self.committed is not None else " (best guess)"),
+                )
+            )
             self.output_branch = target
             self.slewing = True
         return self._result("tracked" if self.committed == self.output_branch else "ambiguous", hypotheses, events)
@@ -425,8 +450,9 @@ class TargetTrack:
         cfg = self.config
         hypotheses = measurement.hypotheses
         self.branches = [self._new_branch(h.pose, camera) for h in hypotheses]
-        self.tilts = _TiltTracker(tilt_of(hypotheses[0].pose), self._tilt_sigma(hypotheses[0].pose, camera),
-                                  cfg.tilt_accel_rad_s2)
+        self.tilts = _TiltTracker(
+            tilt_of(hypotheses[0].pose), self._tilt_sigma(hypotheses[0].pose, camera), cfg.tilt_accel_rad_s2
+        )
         if len(self.branches) == 1:
             self.branches.append(None)  # the other solution failed validation: unknown until it shows up
         self.output_branch = 0
@@ -437,20 +463,27 @@ class TargetTrack:
         if len(hypotheses) == 1:
             self.evidence.append(cfg.single_solution_evidence_px)
         else:
-            self.evidence.append(float(np.clip(hypotheses[1].reproj_px - hypotheses[0].reproj_px,
-                                               -cfg.evidence_cap_px, cfg.evidence_cap_px)))
+            self.evidence.append(
+                float(
+                    np.clip(
+                        hypotheses[1].reproj_px - hypotheses[0].reproj_px, -cfg.evidence_cap_px, cfg.evidence_cap_px
+                    )
+                )
+            )
         best = hypotheses[0].pose
         _, cov_t = pose_covariance(best, self.points, camera, self.sigma_px)
-        self.translation_filter = TranslationFilter(best.tvec, cov_t, cfg.still_translation_m_sqrt_s,
-                                                    cfg.linear_accel_moving_m_s2)
+        self.translation_filter = TranslationFilter(
+            best.tvec, cov_t, cfg.still_translation_m_sqrt_s, cfg.linear_accel_moving_m_s2
+        )
         self.output_rotation = best.rotation
         self.slewing = False
         return (hypotheses[0].pose, hypotheses[1].pose if len(hypotheses) > 1 else None)
 
     def _new_branch(self, pose: Pose, camera: CameraModel) -> RotationFilter:
         cov_rot, _ = pose_covariance(pose, self.points, camera, self.sigma_px)
-        return RotationFilter(pose.rotation, cov_rot, self.config.still_rotation_rad_sqrt_s,
-                              self.config.angular_accel_moving_rad_s2)
+        return RotationFilter(
+            pose.rotation, cov_rot, self.config.still_rotation_rad_sqrt_s, self.config.angular_accel_moving_rad_s2
+        )
 
     def _tilt_sigma(self, pose: Pose, camera: CameraModel) -> float:
         cov_rot, _ = pose_covariance(pose, self.points, camera, self.sigma_px)
@@ -474,13 +507,18 @@ class TargetTrack:
                 self.branches[index] = self._new_branch(assigned[index].pose, camera)
         # Blind for long while the solutions are far apart: which is which may have been lost. (While they
         # are within flip_angle_deg of each other either one is close enough, so blindness costs nothing.)
-        apart = len(hypotheses) == 2 and angle_between_deg(
-            hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
-        if (not clear and apart and self.tilts.blind > self.config.crossing_blind_frames
-                and self.committed is not None):
-            self._pending_events.append(TrackEvent(
-                "uncommit", f"the two solutions stayed indistinguishable for {self.tilts.blind} frames: "
-                            "which is which is undecided again"))
+        apart = (
+            len(hypotheses) == 2
+            and angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
+        )
+        if not clear and apart and self.tilts.blind > self.config.crossing_blind_frames and self.committed is not None:
+            self._pending_events.append(
+                TrackEvent(
+                    "uncommit",
+                    f"the two solutions stayed indistinguishable for {self.tilts.blind} frames: "
+                    "which is which is undecided again",
+                )
+            )
             self.committed = None
             self.evidence.clear()
         return assigned
@@ -492,8 +530,10 @@ class TargetTrack:
             return
         difference = assigned[1].reproj_px - assigned[0].reproj_px
         if cfg.motion_weight_px_per_deg > 0 and self.branches is not None and None not in self.branches:
-            innovation = [float(np.degrees(np.linalg.norm(b.innovation(h.pose.rotation))))
-                          for b, h in zip(self.branches, assigned)]  # type: ignore[union-attr]
+            innovation = [
+                float(np.degrees(np.linalg.norm(b.innovation(h.pose.rotation))))
+                for b, h in zip(self.branches, assigned)
+            ]  # type: ignore[union-attr]
             difference += cfg.motion_weight_px_per_deg * (innovation[1] - innovation[0])
         self.evidence.append(float(np.clip(difference, -cfg.evidence_cap_px, cfg.evidence_cap_px)))
 
@@ -501,8 +541,9 @@ class TargetTrack:
         estimate = measurement.best.reproj_px * _RESIDUAL_TO_SIGMA
         self.sigma_px = max(self.config.corner_noise_px, 0.9 * self.sigma_px + 0.1 * estimate)
 
-    def _update_branches(self, assigned: list[PoseHypothesis | None], camera: CameraModel,
-                         events: list[TrackEvent]) -> None:
+    def _update_branches(
+        self, assigned: list[PoseHypothesis | None], camera: CameraModel, events: list[TrackEvent]
+    ) -> None:
         cfg = self.config
         assert self.branches is not None
         for index, (branch, hypothesis) in enumerate(zip(self.branches, assigned)):
@@ -518,12 +559,22 @@ class TargetTrack:
                 if moved < cfg.flip_translation_m + 3.0 * math.sqrt(float(np.max(np.linalg.eigvalsh(cov_t)))):
                     self.pending_flip += 1
                     if self.pending_flip <= cfg.flip_persist_frames:
-                        events.append(TrackEvent("rejected_flip", f"orientation jump of {jump:.1f} deg with "
-                                                                  f"{100 * moved:.2f} cm of motion: a flip, not motion"))
+                        events.append(
+                            TrackEvent(
+                                "rejected_flip",
+                                f"orientation jump of {jump:.1f} deg with "
+                                f"{100 * moved:.2f} cm of motion: a flip, not motion",
+                            )
+                        )
                         self.doubtful = True  # this frame's output is a prediction we cannot vouch for
                         continue
-                    events.append(TrackEvent("accepted_jump", f"orientation jump of {jump:.1f} deg persisted "
-                                                              f"{self.pending_flip} frames: accepted as motion"))
+                    events.append(
+                        TrackEvent(
+                            "accepted_jump",
+                            f"orientation jump of {jump:.1f} deg persisted "
+                            f"{self.pending_flip} frames: accepted as motion",
+                        )
+                    )
                     branch.reset(pose.rotation, cov_rot)
                     self.slewing = True
             if index == self.output_branch:
@@ -577,8 +628,7 @@ class TargetTrack:
         sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(branch.cv.P[:3, :3]))), 0.0))
         return math.degrees(3.0 * sigma) > self.config.flip_angle_deg
 
-    def _result(self, state: str, hypotheses: tuple[Pose | None, Pose | None],
-                events: list[TrackEvent]) -> TrackUpdate:
+    def _result(self, state: str, hypotheses: tuple[Pose | None, Pose | None], events: list[TrackEvent]) -> TrackUpdate:
         assert self.branches is not None and self.translation_filter is not None
         branch = self.branches[self.output_branch]
         assert branch is not None
@@ -591,5 +641,12 @@ class TargetTrack:
             # turning toward the committed branch, a rejected flip, or an orientation so noisy that even the
             # right branch may be off by a flip's worth: not vouched for
             state = "ambiguous"
-        return TrackUpdate(state, pose, self.output_branch, self.committed is not None,
-                           self._evidence_bound(0.0, 0.0), hypotheses, tuple(events))
+        return TrackUpdate(
+            state,
+            pose,
+            self.output_branch,
+            self.committed is not None,
+            self._evidence_bound(0.0, 0.0),
+            hypotheses,
+            tuple(events),
+        )

@@ -61,8 +61,16 @@ class PosesCsvWriter:
         timestamp = f"{result.timestamp_ns * 1e-9:.9f}"
         for name, target in result.targets.items():
             self._writer.writerow(
-                [str(result.index), timestamp, name, target.state, *_pose_cells(target.pose), *_pose_cells(target.raw),
-                 _num(target.reproj_px), _num(target.ambiguity)]
+                [
+                    str(result.index),
+                    timestamp,
+                    name,
+                    target.state,
+                    *_pose_cells(target.pose),
+                    *_pose_cells(target.raw),
+                    _num(target.reproj_px),
+                    _num(target.ambiguity),
+                ]
             )
             self.rows += 1
         try:
@@ -114,14 +122,16 @@ class RawVideoWriter:
         cv2 = self._cv2
         size = (image.shape[1], image.shape[0])
         if self._writer is None:
-            self._writer = cv2.VideoWriter(str(self.path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*self.FOURCC),
-                                           self.fps, size)
+            self._writer = cv2.VideoWriter(
+                str(self.path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*self.FOURCC), self.fps, size
+            )
             if not self._writer.isOpened():
                 raise OutputError(f"{self.path}: cannot open a lossless {self.FOURCC} video writer")
             self._size = size
         if size != self._size:
-            raise OutputError(f"{self.path}: frame {index} is {size[0]}x{size[1]}, the recording is "
-                              f"{self._size[0]}x{self._size[1]}")
+            raise OutputError(
+                f"{self.path}: frame {index} is {size[0]}x{size[1]}, the recording is {self._size[0]}x{self._size[1]}"
+            )
         self._writer.write(image)
         assert self._csv_file is not None
         self._csv.writerow([index, timestamp_ns])
@@ -198,7 +208,9 @@ class RunSummary:
             stats.measured_in_view += 1
             stats.rotation_errors_deg.append(angle_between_deg(target.pose.rotation, true_pose.rotation))
             distance = float(np.linalg.norm(true_pose.tvec))
-            stats.translation_errors_pct.append(100.0 * float(np.linalg.norm(target.pose.tvec - true_pose.tvec)) / distance)
+            stats.translation_errors_pct.append(
+                100.0 * float(np.linalg.norm(target.pose.tvec - true_pose.tvec)) / distance
+            )
 
     def as_dict(self, wall_time_s: float, **extra: Any) -> dict[str, Any]:
         targets: dict[str, Any] = {}

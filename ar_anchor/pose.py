@@ -82,7 +82,9 @@ class PoseFailure:
     reason: str
 
 
-def reprojection_rms(pose: Pose, points_in_target: np.ndarray, points_in_image: np.ndarray, camera: CameraModel) -> float:
+def reprojection_rms(
+    pose: Pose, points_in_target: np.ndarray, points_in_image: np.ndarray, camera: CameraModel
+) -> float:
     """RMS over points of the Euclidean pixel distance between projected and observed points."""
     projected, _ = cv2.projectPoints(
         np.asarray(points_in_target, np.float64), pose.rvec, pose.tvec, camera.camera_matrix, camera.dist_or_none
@@ -134,7 +136,9 @@ def _quad_problem(corners: np.ndarray) -> str | None:
     edges = np.roll(corners, -1, axis=0) - corners
     following = np.roll(edges, -1, axis=0)
     cross = edges[:, 0] * following[:, 1] - edges[:, 1] * following[:, 0]
-    area = 0.5 * abs(float(np.sum(corners[:, 0] * np.roll(corners[:, 1], -1) - np.roll(corners[:, 0], -1) * corners[:, 1])))
+    area = 0.5 * abs(
+        float(np.sum(corners[:, 0] * np.roll(corners[:, 1], -1) - np.roll(corners[:, 0], -1) * corners[:, 1]))
+    )
     if area < 1.0:
         return f"degenerate quadrilateral (area {area:.3g} px^2)"
     if not (np.all(cross > 0) or np.all(cross < 0)):
@@ -150,7 +154,9 @@ def solve_marker(
     max_reproj_px: float = 3.0,
 ) -> MarkerPose | PoseFailure:
     """Pose of one square marker from its 4 corners (TL, TR, BR, BL), with validation and fallbacks."""
-    corners = np.asarray(corners_in_image, dtype=np.float64).reshape(-1, 2) if np.size(corners_in_image) else np.zeros((0, 2))
+    corners = (
+        np.asarray(corners_in_image, dtype=np.float64).reshape(-1, 2) if np.size(corners_in_image) else np.zeros((0, 2))
+    )
     problem = _quad_problem(corners)
     if problem is not None:
         return PoseFailure(marker_id, problem)

@@ -125,9 +125,14 @@ def run_session(
     start = time.perf_counter()
     try:
         with ExitStack() as stack:
-            recorder = RerunRecorder(recording_rrd, camera=tracker.camera, settings=tracker.config.recording,
-                                     spawn=options.spawn, connect=options.connect,
-                                     recording_name=options.recording_name)
+            recorder = RerunRecorder(
+                recording_rrd,
+                camera=tracker.camera,
+                settings=tracker.config.recording,
+                spawn=options.spawn,
+                connect=options.connect,
+                recording_name=options.recording_name,
+            )
             stack.callback(recorder.close)
             image_logging = "jpeg"
             if options.video_asset is not None and recorder.use_video(options.video_asset, source.frame_count):

@@ -137,8 +137,9 @@ class Tracker:
         latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
         return FrameResult(frame.index, frame.timestamp_ns, detections, targets, tuple(failures), latency, camera)
 
-
-    def _filter(self, measured: dict[str, MarkerPose], timestamp_ns: int, camera: CameraModel) -> dict[str, TargetResult]:
+    def _filter(
+        self, measured: dict[str, MarkerPose], timestamp_ns: int, camera: CameraModel
+    ) -> dict[str, TargetResult]:
         targets: dict[str, TargetResult] = {}
         for name in sorted(set(measured) | set(self.tracks), key=_marker_order):
             solved = measured.get(name)
@@ -158,8 +159,11 @@ class Tracker:
                 state=update.state,
                 pose=update.pose,
                 raw=solved.best.pose if solved is not None else None,
-                reproj_px=(reprojection_rms(update.pose, track.points, solved.corners_in_image, camera)
-                           if solved is not None else math.nan),
+                reproj_px=(
+                    reprojection_rms(update.pose, track.points, solved.corners_in_image, camera)
+                    if solved is not None
+                    else math.nan
+                ),
                 ambiguity=solved.ambiguity if solved is not None else math.nan,
                 length_m=length,
                 hypotheses=solved.hypotheses if solved is not None else (),

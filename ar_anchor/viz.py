@@ -63,28 +63,32 @@ def default_blueprint() -> rrb.Blueprint:
     """
     return rrb.Blueprint(
         rrb.Vertical(
-        rrb.Horizontal(
-            rrb.Spatial2DView(origin="camera/image", name="Camera"),
-            rrb.Spatial3DView(
-                origin="world",
-                name="3D scene",
-                line_grid=rrb.LineGrid3D(visible=True, spacing=0.1),
-                eye_controls=rrb.EyeControls3D(
-                    kind=rrb.Eye3DKind.Orbital, position=(0.9, 0.7, 1.8), look_target=(0.0, 0.0, 0.4), eye_up=(0, 1, 0)
+            rrb.Horizontal(
+                rrb.Spatial2DView(origin="camera/image", name="Camera"),
+                rrb.Spatial3DView(
+                    origin="world",
+                    name="3D scene",
+                    line_grid=rrb.LineGrid3D(visible=True, spacing=0.1),
+                    eye_controls=rrb.EyeControls3D(
+                        kind=rrb.Eye3DKind.Orbital,
+                        position=(0.9, 0.7, 1.8),
+                        look_target=(0.0, 0.0, 0.4),
+                        eye_up=(0, 1, 0),
+                    ),
                 ),
+                rrb.Vertical(
+                    rrb.TimeSeriesView(origin="metrics/reproj_px", name="Reprojection error (px)"),
+                    rrb.TimeSeriesView(
+                        origin="metrics/ambiguity", name="IPPE ambiguity ratio", axis_y=rrb.ScalarAxis(range=(1.0, 5.0))
+                    ),
+                    rrb.TimeSeriesView(origin="metrics/flip_evidence_px", name="Flip evidence (px, + = branch 0)"),
+                    rrb.TimeSeriesView(origin="metrics/rotation_error_deg", name="Rotation error vs truth (deg)"),
+                    rrb.TimeSeriesView(origin="metrics/latency", name="Latency (ms)"),
+                ),
+                column_shares=[3, 3, 2],
             ),
-            rrb.Vertical(
-                rrb.TimeSeriesView(origin="metrics/reproj_px", name="Reprojection error (px)"),
-                rrb.TimeSeriesView(origin="metrics/ambiguity", name="IPPE ambiguity ratio",
-                                   axis_y=rrb.ScalarAxis(range=(1.0, 5.0))),
-                rrb.TimeSeriesView(origin="metrics/flip_evidence_px", name="Flip evidence (px, + = branch 0)"),
-                rrb.TimeSeriesView(origin="metrics/rotation_error_deg", name="Rotation error vs truth (deg)"),
-                rrb.TimeSeriesView(origin="metrics/latency", name="Latency (ms)"),
-            ),
-            column_shares=[3, 3, 2],
-        ),
-        rrb.TextLogView(origin="events", name="Tracker events"),
-        row_shares=[5, 1],
+            rrb.TextLogView(origin="events", name="Tracker events"),
+            row_shares=[5, 1],
         ),
         collapse_panels=True,
     )
@@ -130,8 +134,11 @@ class RerunRecorder:
     def _spawn_viewer(self) -> bool:
         """Start a rerun viewer (the one installed beside this Python first); warn and go on without it."""
         if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-            log.warning("--spawn: no display (DISPLAY / WAYLAND_DISPLAY unset), so no rerun viewer; recording to "
-                        "file only (open it later with: rerun %s)", self.rrd_path)
+            log.warning(
+                "--spawn: no display (DISPLAY / WAYLAND_DISPLAY unset), so no rerun viewer; recording to "
+                "file only (open it later with: rerun %s)",
+                self.rrd_path,
+            )
             return False
         beside = Path(sys.executable).with_name("rerun")
         try:
@@ -178,8 +185,9 @@ class RerunRecorder:
     def _log_static_target(self, name: str, length_m: float, is_anchor: bool) -> None:
         path = "world" if is_anchor else f"world/targets/{entity_name(name)}"
         square = np.vstack([marker_corners_in_marker(length_m), marker_corners_in_marker(length_m)[:1]])
-        self.rec.log(f"{path}/outline", rr.LineStrips3D([square], colors=[(230, 230, 230)], radii=[length_m / 60]),
-                     static=True)
+        self.rec.log(
+            f"{path}/outline", rr.LineStrips3D([square], colors=[(230, 230, 230)], radii=[length_m / 60]), static=True
+        )
         self.rec.log(f"{path}/axes", rr.TransformAxes3D(axis_length=length_m * 0.75), static=True)
         self.rec.log(f"{path}/label", rr.Points3D([[0, 0, 0]], labels=[name], radii=[length_m / 40]), static=True)
 
@@ -215,7 +223,9 @@ class RerunRecorder:
         failed = {f.marker_id for f in result.failures}
         for marker_id, corners in zip(result.detections.ids.tolist(), result.detections.corners):
             target = result.targets.get(f"marker:{marker_id}")
-            colour = _STATE_COLOURS[target.state] if target else (_FAILED_COLOUR if marker_id in failed else (160, 160, 160))
+            colour = (
+                _STATE_COLOURS[target.state] if target else (_FAILED_COLOUR if marker_id in failed else (160, 160, 160))
+            )
             strips.append(to_rerun(np.vstack([corners, corners[:1]])))
             colours.append(colour)
             labels.append(str(marker_id))
@@ -229,7 +239,11 @@ class RerunRecorder:
         names = sorted(result.targets, key=lambda n: (not n.startswith("board:"), len(n), n))
         self.anchor = names[0]
         anchor = result.targets[self.anchor]
-        up = rr.ViewCoordinates.RIGHT_HAND_Y_DOWN if self.anchor.startswith("board:") else rr.ViewCoordinates.RIGHT_HAND_Y_UP
+        up = (
+            rr.ViewCoordinates.RIGHT_HAND_Y_DOWN
+            if self.anchor.startswith("board:")
+            else rr.ViewCoordinates.RIGHT_HAND_Y_UP
+        )
         self.rec.log("world", up, static=True)
         self._log_static_target(self.anchor, anchor.length_m, is_anchor=True)
         self._static_targets.add(self.anchor)
@@ -260,8 +274,15 @@ class RerunRecorder:
             return
         anchor = result.targets.get(self.anchor)
         if truth is not None and self.anchor in truth:
-            rec.log("world/truth_camera", rr.Points3D([truth[self.anchor].camera_centre()], colors=[(255, 255, 255)],
-                                                       radii=[0.005], labels=["true camera"]))
+            rec.log(
+                "world/truth_camera",
+                rr.Points3D(
+                    [truth[self.anchor].camera_centre()],
+                    colors=[(255, 255, 255)],
+                    radii=[0.005],
+                    labels=["true camera"],
+                ),
+            )
         if anchor is None:
             return
         world_from_camera = anchor.pose.inverse()
@@ -273,8 +294,10 @@ class RerunRecorder:
                 self._log_static_target(name, target.length_m, is_anchor=False)
                 self._static_targets.add(name)
             world_from_target = world_from_camera.compose(target.pose)
-            rec.log(f"world/targets/{entity_name(name)}",
-                    rr.Transform3D(translation=world_from_target.tvec, mat3x3=world_from_target.rotation))
+            rec.log(
+                f"world/targets/{entity_name(name)}",
+                rr.Transform3D(translation=world_from_target.tvec, mat3x3=world_from_target.rotation),
+            )
         self._log_hypotheses(result, world_from_camera)
 
     def _log_hypotheses(self, result: FrameResult, world_from_camera: Pose) -> None:
@@ -286,8 +309,11 @@ class RerunRecorder:
                     self.rec.log(path, rr.Clear(recursive=False))
                     continue
                 world_from_branch = world_from_camera.compose(pose)
-                square = world_from_branch.apply(np.vstack([marker_corners_in_marker(target.length_m),
-                                                            marker_corners_in_marker(target.length_m)[:1]]))
+                square = world_from_branch.apply(
+                    np.vstack(
+                        [marker_corners_in_marker(target.length_m), marker_corners_in_marker(target.length_m)[:1]]
+                    )
+                )
                 normal = world_from_branch.apply(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, target.length_m]]))
                 colour = (90, 200, 255, 90) if branch == 0 else (255, 140, 60, 90)
                 self.rec.log(path, rr.LineStrips3D([square, normal], colors=[colour], radii=[target.length_m / 120]))

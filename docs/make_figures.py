@@ -25,10 +25,20 @@ def demo_frame(index: int = 40, frames: int = 300) -> np.ndarray:
     image = frame.image.copy()
     for marker_id, corners in zip(result.detections.ids.tolist(), result.detections.corners):
         cv2.polylines(image, [np.round(corners * 16).astype(np.int32)], True, (60, 220, 60), 2, cv2.LINE_AA, shift=4)
-        cv2.putText(image, str(marker_id), tuple(int(v) for v in corners[0] + (-4, -8)),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.7, (60, 220, 60), 2, cv2.LINE_AA)
+        cv2.putText(
+            image,
+            str(marker_id),
+            tuple(int(v) for v in corners[0] + (-4, -8)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.7,
+            (60, 220, 60),
+            2,
+            cv2.LINE_AA,
+        )
     for target in result.targets.values():
-        cv2.drawFrameAxes(image, camera.camera_matrix, None, target.pose.rvec, target.pose.tvec, target.length_m * 0.6, 2)
+        cv2.drawFrameAxes(
+            image, camera.camera_matrix, None, target.pose.rvec, target.pose.tvec, target.length_m * 0.6, 2
+        )
     return image
 
 

@@ -38,7 +38,11 @@ _CAMERA_NEGATIVE_F = (
 def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "ar_anchor", *args],
-        cwd=cwd, capture_output=True, text=True, timeout=TIMEOUT_S, check=False,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
     )
 
 
@@ -53,31 +57,47 @@ def assert_usage_error(result: subprocess.CompletedProcess[str]) -> None:
 
 # (option, file name, file content or None for a missing file, text the one stderr line must contain)
 BAD_FILES = [
-    pytest.param("--config", "bad_value.toml", "[markers]\nlength_m = -0.05\n", "[markers] length_m",
-                 id="a-config-bad-value"),
-    pytest.param("--config", "bad_type.toml", "[recording]\njpeg_quality = 'high'\n",
-                 "[recording] jpeg_quality",
-                 id="a-config-bad-type"),
-    pytest.param("--config", "bad_key.toml", "[pose]\nmax_reproj = 2.0\n", "max_reproj",
-                 id="a-config-unknown-key"),
-    pytest.param("--config", "bad_syntax.toml", "[pose\nmax_reproj_px = 2.0\n", "invalid TOML",
-                 id="a-config-invalid-toml"),
-    pytest.param("--config", "bad_dict.toml", "[detector]\ndictionary = 'DICT_4X4_51'\n", "dictionary",
-                 id="b-config-unknown-dictionary"),
+    pytest.param(
+        "--config", "bad_value.toml", "[markers]\nlength_m = -0.05\n", "[markers] length_m", id="a-config-bad-value"
+    ),
+    pytest.param(
+        "--config",
+        "bad_type.toml",
+        "[recording]\njpeg_quality = 'high'\n",
+        "[recording] jpeg_quality",
+        id="a-config-bad-type",
+    ),
+    pytest.param("--config", "bad_key.toml", "[pose]\nmax_reproj = 2.0\n", "max_reproj", id="a-config-unknown-key"),
+    pytest.param(
+        "--config", "bad_syntax.toml", "[pose\nmax_reproj_px = 2.0\n", "invalid TOML", id="a-config-invalid-toml"
+    ),
+    pytest.param(
+        "--config",
+        "bad_dict.toml",
+        "[detector]\ndictionary = 'DICT_4X4_51'\n",
+        "dictionary",
+        id="b-config-unknown-dictionary",
+    ),
     pytest.param("--config", "no_such.toml", None, "not found", id="a-config-missing"),
-    pytest.param("--config", "bad_id_key.toml", '[markers.lengths_m]\n"\u00b2" = 0.04\n', "lengths_m",
-                 id="a-config-unicode-digit-id"),
+    pytest.param(
+        "--config",
+        "bad_id_key.toml",
+        '[markers.lengths_m]\n"\u00b2" = 0.04\n',
+        "lengths_m",
+        id="a-config-unicode-digit-id",
+    ),
     pytest.param("--camera", "no_such_camera.yml", None, "not found", id="c-camera-missing"),
-    pytest.param("--camera", "bad_shape.yml", _CAMERA_WRONG_SHAPE, "camera_matrix",
-                 id="d-camera-wrong-shape"),
+    pytest.param("--camera", "bad_shape.yml", _CAMERA_WRONG_SHAPE, "camera_matrix", id="d-camera-wrong-shape"),
     pytest.param("--camera", "bad_focal.yml", _CAMERA_NEGATIVE_F, "focal", id="d-camera-negative-focal"),
     pytest.param("--camera", "empty_camera.yml", "", "empty", id="d-camera-empty"),
-    pytest.param("--camera", "garbage_camera.yml", "not: a [camera\n{{{\n", "camera file",
-                 id="d-camera-garbage"),
-    pytest.param("--camera", "string_matrix.yml",
-                 "%YAML 1.2\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: identity\n",
-                 "camera_matrix",
-                 id="d-camera-matrix-not-a-matrix"),
+    pytest.param("--camera", "garbage_camera.yml", "not: a [camera\n{{{\n", "camera file", id="d-camera-garbage"),
+    pytest.param(
+        "--camera",
+        "string_matrix.yml",
+        "%YAML 1.2\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: identity\n",
+        "camera_matrix",
+        id="d-camera-matrix-not-a-matrix",
+    ),
 ]
 
 
@@ -174,6 +194,7 @@ def test_demo_writes_csv_summary_and_valid_recording(tmp_path, argv):
     assert rrd.stat().st_size > 0
     if not RERUN.exists():
         pytest.skip(f"{RERUN} not found: recording.rrd not verified")
-    verify = subprocess.run([str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True,
-                            timeout=TIMEOUT_S, check=False)
+    verify = subprocess.run(
+        [str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=TIMEOUT_S, check=False
+    )
     assert verify.returncode == 0, verify.stdout + verify.stderr

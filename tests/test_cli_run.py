@@ -28,7 +28,10 @@ def test_sigterm_mid_run_leaves_complete_outputs(tmp_path):
     out = tmp_path / "run"
     process = subprocess.Popen(
         [sys.executable, "-m", "ar_anchor", "-q", "demo", "--frames", "2000", "--out", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
     )
     # when it is terminated once some frames are written
     deadline = time.monotonic() + 60
@@ -53,7 +56,11 @@ def test_spawn_without_a_display_records_to_file_and_says_why(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     result = subprocess.run(
         [sys.executable, "-m", "ar_anchor", "-q", "demo", "--frames", "3", "--spawn", "--out", str(tmp_path / "run")],
-        capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+        cwd=tmp_path,
     )
     assert result.returncode == 0, result.stderr
     assert "no display" in result.stderr

@@ -7,7 +7,6 @@ import logging
 import re
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -45,8 +44,9 @@ def test_default_toml_equals_dataclass_defaults():
     assert loaded.source == str(DEFAULT_TOML)
     assert dataclasses.replace(loaded, source="x") == dataclasses.replace(TrackerConfig(), source="x")
     # (spot-check the parts most likely to drift, so a failure says which)
-    assert loaded.boards == (BoardConfig(name="desk", cols=2, rows=2, marker_length_m=0.04,
-                                         separation_m=0.02, first_id=10),)
+    assert loaded.boards == (
+        BoardConfig(name="desk", cols=2, rows=2, marker_length_m=0.04, separation_m=0.02, first_id=10),
+    )
     assert dict(loaded.markers.lengths_m) == {7: 0.04}
     assert loaded.marker_length(7) == 0.04
     assert loaded.marker_length(12) == 0.04  # a desk-board member
@@ -107,62 +107,73 @@ _BOARD_A = "[[boards]]\nname = 'a'\n"
 # (id, file content, regex the message must match after the file path)
 CONFIG_ERRORS = [
     ("unknown-top-level-key", "colour = 'red'\n", r"top level.*unknown key.*\bcolour\b"),
-    ("unknown-top-level-table", "[detecter]\ndictionary = 'DICT_4X4_50'\n",
-     r"top level.*unknown key.*\bdetecter\b"),
+    ("unknown-top-level-table", "[detecter]\ndictionary = 'DICT_4X4_50'\n", r"top level.*unknown key.*\bdetecter\b"),
     ("unknown-markers-key", "[markers]\nlenght_m = 0.05\n", r"\[markers\].*unknown key.*\blenght_m\b"),
     ("negative-length", "[markers]\nlength_m = -1\n", r"\[markers\] length_m: must be > 0, got -1"),
     ("zero-length", "[markers]\nlength_m = 0\n", r"\[markers\] length_m: must be > 0, got 0"),
     ("nan-length", "[markers]\nlength_m = nan\n", r"\[markers\] length_m: must be finite"),
-    ("string-for-number", "[markers]\nlength_m = '0.05'\n",
-     r"\[markers\] length_m: must be a number, got '0.05'"),
-    ("string-for-number-pose", "[pose]\nmax_reproj_px = 'three'\n",
-     r"\[pose\] max_reproj_px: must be a number"),
+    ("string-for-number", "[markers]\nlength_m = '0.05'\n", r"\[markers\] length_m: must be a number, got '0.05'"),
+    ("string-for-number-pose", "[pose]\nmax_reproj_px = 'three'\n", r"\[pose\] max_reproj_px: must be a number"),
     ("bool-for-number", "[markers]\nlength_m = true\n", r"\[markers\] length_m: must be a number, got True"),
-    ("bool-for-int", "[recording]\njpeg_quality = true\n",
-     r"\[recording\] jpeg_quality: must be an integer, got True"),
-    ("bool-for-int-board", _BOARD_A + "cols = true\n",
-     r"\[\[boards\]\] 'a' cols: must be an integer, got True"),
+    ("bool-for-int", "[recording]\njpeg_quality = true\n", r"\[recording\] jpeg_quality: must be an integer, got True"),
+    ("bool-for-int-board", _BOARD_A + "cols = true\n", r"\[\[boards\]\] 'a' cols: must be an integer, got True"),
     ("float-for-int", "[recording]\nimage_every = 1.5\n", r"\[recording\] image_every: must be an integer"),
-    ("out-of-range-int", "[recording]\njpeg_quality = 101\n",
-     r"\[recording\] jpeg_quality: must be in \[1, 100\]"),
-    ("unknown-dictionary", "[detector]\ndictionary = 'DICT_9X9_1'\n",
-     r"\[detector\] dictionary:.*DICT_9X9_1"),
+    ("out-of-range-int", "[recording]\njpeg_quality = 101\n", r"\[recording\] jpeg_quality: must be in \[1, 100\]"),
+    ("unknown-dictionary", "[detector]\ndictionary = 'DICT_9X9_1'\n", r"\[detector\] dictionary:.*DICT_9X9_1"),
     ("non-string-dictionary", "[detector]\ndictionary = 50\n", r"\[detector\] dictionary: must be a string"),
-    ("unknown-refinement", "[detector]\ncorner_refinement = 'best'\n",
-     r"\[detector\] corner_refinement:.*'best'"),
+    ("unknown-refinement", "[detector]\ncorner_refinement = 'best'\n", r"\[detector\] corner_refinement:.*'best'"),
     ("table-is-scalar", "detector = 3\n", r"\[detector\] must be a table"),
-    ("lengths-key-not-id", "[markers.lengths_m]\nseven = 0.04\n",
-     r"\[markers\.lengths_m\] seven: keys must be marker ids"),
-    ("lengths-key-negative", "[markers.lengths_m]\n-1 = 0.04\n",
-     r"\[markers\.lengths_m\] -1: keys must be marker ids"),
-    ("lengths-key-outside-dict", "[markers.lengths_m]\n50 = 0.04\n",
-     r"\[markers\.lengths_m\] 50: keys must be marker ids 0\.\.49"),
-    ("lengths-key-unicode-digit", '[markers.lengths_m]\n"\u00b2" = 0.04\n',
-     r"\[markers\.lengths_m\] \u00b2: keys must be marker ids"),
+    (
+        "lengths-key-not-id",
+        "[markers.lengths_m]\nseven = 0.04\n",
+        r"\[markers\.lengths_m\] seven: keys must be marker ids",
+    ),
+    ("lengths-key-negative", "[markers.lengths_m]\n-1 = 0.04\n", r"\[markers\.lengths_m\] -1: keys must be marker ids"),
+    (
+        "lengths-key-outside-dict",
+        "[markers.lengths_m]\n50 = 0.04\n",
+        r"\[markers\.lengths_m\] 50: keys must be marker ids 0\.\.49",
+    ),
+    (
+        "lengths-key-unicode-digit",
+        '[markers.lengths_m]\n"\u00b2" = 0.04\n',
+        r"\[markers\.lengths_m\] \u00b2: keys must be marker ids",
+    ),
     ("lengths-value-negative", "[markers.lengths_m]\n3 = -0.04\n", r"\[markers\.lengths_m\] 3: must be > 0"),
     ("markers-ids-outside-dict", "[markers]\nids = [0, 50]\n", r"\[markers\] ids: ids \[50\] are outside"),
     ("markers-ids-duplicate", "[markers]\nids = [1, 1]\n", r"\[markers\] ids: ids must be unique"),
     ("markers-ids-not-list", "[markers]\nids = 3\n", r"\[markers\] ids: must be a list"),
     ("board-cols-zero", _BOARD_A + "cols = 0\n", r"\[\[boards\]\] 'a' cols: must be in \[1, 100\], got 0"),
-    ("board-rows-negative", _BOARD_A + "rows = -2\n",
-     r"\[\[boards\]\] 'a' rows: must be in \[1, 100\], got -2"),
+    ("board-rows-negative", _BOARD_A + "rows = -2\n", r"\[\[boards\]\] 'a' rows: must be in \[1, 100\], got -2"),
     ("board-no-name", "[[boards]]\ncols = 2\n", r"\[\[boards\]\] #1 name: is required"),
     ("board-bad-kind", _BOARD_A + "kind = 'charuco'\n", r"\[\[boards\]\] 'a' kind: only 'grid'"),
     ("board-unknown-key", _BOARD_A + "colums = 2\n", r"\[\[boards\]\] 'a'.*unknown key.*\bcolums\b"),
-    ("board-ids-overlap",
-     "[[boards]]\nname = 'a'\nfirst_id = 10\n[[boards]]\nname = 'b'\nfirst_id = 11\n",
-     r"\[\[boards\]\] 'b' ids: marker id 11 is already used by board 'a'"),
-    ("board-explicit-ids-overlap",
-     "[[boards]]\nname = 'a'\nids = [1, 2, 3, 4]\n[[boards]]\nname = 'b'\nids = [5, 6, 7, 4]\n",
-     r"\[\[boards\]\] 'b' ids: marker id 4 is already used by board 'a'"),
-    ("board-duplicate-name", "[[boards]]\nname = 'a'\n[[boards]]\nname = 'a'\nfirst_id = 20\n",
-     r"\[\[boards\]\] 'a' name: duplicate board name"),
-    ("board-ids-wrong-length", _BOARD_A + "ids = [1, 2, 3]\n",
-     r"\[\[boards\]\] 'a' ids: needs cols\*rows = 4 ids, got 3"),
-    ("board-ids-past-dictionary", _BOARD_A + "first_id = 48\n",
-     r"\[\[boards\]\] 'a' first_id: ids 48\.\.51 exceed"),
-    ("board-length-conflict", "[markers.lengths_m]\n1 = 0.03\n" + _BOARD_A + "first_id = 0\n",
-     r"\[\[boards\]\] 'a' marker_length_m: marker 1"),
+    (
+        "board-ids-overlap",
+        "[[boards]]\nname = 'a'\nfirst_id = 10\n[[boards]]\nname = 'b'\nfirst_id = 11\n",
+        r"\[\[boards\]\] 'b' ids: marker id 11 is already used by board 'a'",
+    ),
+    (
+        "board-explicit-ids-overlap",
+        "[[boards]]\nname = 'a'\nids = [1, 2, 3, 4]\n[[boards]]\nname = 'b'\nids = [5, 6, 7, 4]\n",
+        r"\[\[boards\]\] 'b' ids: marker id 4 is already used by board 'a'",
+    ),
+    (
+        "board-duplicate-name",
+        "[[boards]]\nname = 'a'\n[[boards]]\nname = 'a'\nfirst_id = 20\n",
+        r"\[\[boards\]\] 'a' name: duplicate board name",
+    ),
+    (
+        "board-ids-wrong-length",
+        _BOARD_A + "ids = [1, 2, 3]\n",
+        r"\[\[boards\]\] 'a' ids: needs cols\*rows = 4 ids, got 3",
+    ),
+    ("board-ids-past-dictionary", _BOARD_A + "first_id = 48\n", r"\[\[boards\]\] 'a' first_id: ids 48\.\.51 exceed"),
+    (
+        "board-length-conflict",
+        "[markers.lengths_m]\n1 = 0.03\n" + _BOARD_A + "first_id = 0\n",
+        r"\[\[boards\]\] 'a' marker_length_m: marker 1",
+    ),
     ("boards-not-array", "boards = 3\n", r"boards must be an array of tables"),
     ("invalid-toml-syntax", "[markers\nlength_m = 0.05\n", r"invalid TOML.*line 1"),
     ("invalid-toml-duplicate-key", "[pose]\nmax_reproj_px = 1.0\nmax_reproj_px = 2.0\n", r"invalid TOML"),
@@ -170,12 +181,9 @@ CONFIG_ERRORS = [
 ]
 
 
-
-
 @pytest.mark.parametrize(
     ("content", "pattern"),
-    [pytest.param(content, pattern, id=name)
-     for name, content, pattern in CONFIG_ERRORS],
+    [pytest.param(content, pattern, id=name) for name, content, pattern in CONFIG_ERRORS],
 )
 def test_bad_config_raises_one_line_config_error_naming_file_and_key(tmp_path, content, pattern):
     # given a config file with one mistake
@@ -251,20 +259,37 @@ def test_round_trip_without_distortion_stays_distortion_free(tmp_path):
 _K_OK = "500., 0., 319.5, 0., 500., 239.5, 0., 0., 1."
 
 
-def _camera_yaml(*, matrix: str | None = _K_OK, rows: int = 3, cols: int = 3,
-                 width: str | None = "640", height: str | None = "480", dist: str | None = None) -> str:
+def _camera_yaml(
+    *,
+    matrix: str | None = _K_OK,
+    rows: int = 3,
+    cols: int = 3,
+    width: str | None = "640",
+    height: str | None = "480",
+    dist: str | None = None,
+) -> str:
     lines = ["%YAML 1.2", "---"]
     if width is not None:
         lines.append(f"image_width: {width}")
     if height is not None:
         lines.append(f"image_height: {height}")
     if matrix is not None:
-        lines += ["camera_matrix: !!opencv-matrix", f"   rows: {rows}", f"   cols: {cols}", "   dt: d",
-                  f"   data: [ {matrix} ]"]
+        lines += [
+            "camera_matrix: !!opencv-matrix",
+            f"   rows: {rows}",
+            f"   cols: {cols}",
+            "   dt: d",
+            f"   data: [ {matrix} ]",
+        ]
     if dist is not None:
         n = len(dist.split(","))
-        lines += ["distortion_coefficients: !!opencv-matrix", "   rows: 1", f"   cols: {n}", "   dt: d",
-                  f"   data: [ {dist} ]"]
+        lines += [
+            "distortion_coefficients: !!opencv-matrix",
+            "   rows: 1",
+            f"   cols: {n}",
+            "   dt: d",
+            f"   data: [ {dist} ]",
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -272,37 +297,51 @@ def _camera_yaml(*, matrix: str | None = _K_OK, rows: int = 3, cols: int = 3,
 CAMERA_ERRORS = [
     pytest.param("", r"empty", id="empty-file"),
     pytest.param("  \n\n", r"empty", id="blank-file"),
-    pytest.param("%YAML 1.2\n---\nimage_width: 640\nimage_height: 480\n", r"missing 'camera_matrix'",
-                 id="no-camera-matrix"),
-    pytest.param(_camera_yaml(matrix="500., 0., 320., 0., 500., 240.", rows=2),
-                 r"camera_matrix: expected 3x3",
-                 id="matrix-2x3"),
-    pytest.param(_camera_yaml(matrix="500., 0., 319.5, 0., 500., 239.5", rows=2).replace(
-                 "!!opencv-matrix\n   rows: 2\n   cols: 3\n   dt: d\n   data:", ""),
-                 r"camera_matrix: expected 3x3, got shape \(6,\)", id="matrix-plain-list-of-6"),
-    pytest.param(_camera_yaml(matrix="-500., 0., 319.5, 0., 500., 239.5, 0., 0., 1."),
-                 r"focal lengths must be > 0.*fx=-500", id="negative-fx"),
-    pytest.param(_camera_yaml(matrix="500., 0., 319.5, 0., 0., 239.5, 0., 0., 1."),
-                 r"focal lengths must be > 0.*fy=0", id="zero-fy"),
-    pytest.param(_camera_yaml(matrix="500., 0., 319.5, 0., 500., 239.5, 0., 1., 1."),
-                 r"last row must be \[0, 0, 1\]", id="bad-last-row"),
+    pytest.param(
+        "%YAML 1.2\n---\nimage_width: 640\nimage_height: 480\n", r"missing 'camera_matrix'", id="no-camera-matrix"
+    ),
+    pytest.param(
+        _camera_yaml(matrix="500., 0., 320., 0., 500., 240.", rows=2), r"camera_matrix: expected 3x3", id="matrix-2x3"
+    ),
+    pytest.param(
+        _camera_yaml(matrix="500., 0., 319.5, 0., 500., 239.5", rows=2).replace(
+            "!!opencv-matrix\n   rows: 2\n   cols: 3\n   dt: d\n   data:", ""
+        ),
+        r"camera_matrix: expected 3x3, got shape \(6,\)",
+        id="matrix-plain-list-of-6",
+    ),
+    pytest.param(
+        _camera_yaml(matrix="-500., 0., 319.5, 0., 500., 239.5, 0., 0., 1."),
+        r"focal lengths must be > 0.*fx=-500",
+        id="negative-fx",
+    ),
+    pytest.param(
+        _camera_yaml(matrix="500., 0., 319.5, 0., 0., 239.5, 0., 0., 1."),
+        r"focal lengths must be > 0.*fy=0",
+        id="zero-fy",
+    ),
+    pytest.param(
+        _camera_yaml(matrix="500., 0., 319.5, 0., 500., 239.5, 0., 1., 1."),
+        r"last row must be \[0, 0, 1\]",
+        id="bad-last-row",
+    ),
     pytest.param(_camera_yaml(width=None), r"missing 'image_width'", id="no-image-width"),
     pytest.param(_camera_yaml(height=None), r"missing 'image_height'", id="no-image-height"),
     pytest.param(_camera_yaml(width="wide"), r"'image_width' must be a number", id="width-not-number"),
-    pytest.param(_camera_yaml(width="640.5"), r"'image_width' must be a positive integer",
-                 id="width-fractional"),
-    pytest.param(_camera_yaml(height="-480"), r"'image_height' must be a positive integer",
-                 id="height-negative"),
-    pytest.param(_camera_yaml(dist="0.1, 0.01, 0.0"), r"distortion_coefficients: expected 4, 5, 8, 12 or 14",
-                 id="dist-3-values"),
+    pytest.param(_camera_yaml(width="640.5"), r"'image_width' must be a positive integer", id="width-fractional"),
+    pytest.param(_camera_yaml(height="-480"), r"'image_height' must be a positive integer", id="height-negative"),
+    pytest.param(
+        _camera_yaml(dist="0.1, 0.01, 0.0"), r"distortion_coefficients: expected 4, 5, 8, 12 or 14", id="dist-3-values"
+    ),
     pytest.param("this is: not [yaml\n{{{\n", r"", id="garbage-text"),
     pytest.param("hello world\n", r"", id="plain-sentence"),
-    pytest.param(np.random.default_rng(7).integers(0, 256, 512, dtype=np.uint8).tobytes(), r"",
-                 id="random-bytes"),
+    pytest.param(np.random.default_rng(7).integers(0, 256, 512, dtype=np.uint8).tobytes(), r"", id="random-bytes"),
     pytest.param("- 1\n- 2\n", r"", id="yaml-list-document"),
-    pytest.param("%YAML 1.2\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: identity\n",
-                 r"camera_matrix",
-                 id="matrix-is-string"),
+    pytest.param(
+        "%YAML 1.2\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: identity\n",
+        r"camera_matrix",
+        id="matrix-is-string",
+    ),
 ]
 
 
@@ -354,8 +393,7 @@ def test_scaled_to_half_resolution_uses_pixel_centre_convention(camera_logs):
     np.testing.assert_array_equal(k[2], [0.0, 0.0, 1.0])
     np.testing.assert_array_equal(half.dist_coeffs, dist)  # distortion is resolution independent
     # and a warning says the intrinsics were rescaled
-    warnings = [r for r in camera_logs.records
-                if r.levelno == logging.WARNING and r.name == "ar_anchor.camera"]
+    warnings = [r for r in camera_logs.records if r.levelno == logging.WARNING and r.name == "ar_anchor.camera"]
     assert len(warnings) == 1
     assert "1280x720" in warnings[0].getMessage() and "640x360" in warnings[0].getMessage()
 
@@ -391,4 +429,6 @@ def test_camera_matrix_as_a_plain_list_of_nine_is_read_row_major(tmp_path):
     # when it is read, then it is the same matrix as the tagged form
     tagged = tmp_path / "tagged.yml"
     tagged.write_text(_camera_yaml())
-    np.testing.assert_array_equal(CameraModel.from_yaml(path).camera_matrix, CameraModel.from_yaml(tagged).camera_matrix)
+    np.testing.assert_array_equal(
+        CameraModel.from_yaml(path).camera_matrix, CameraModel.from_yaml(tagged).camera_matrix
+    )

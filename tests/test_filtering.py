@@ -115,8 +115,9 @@ def test_track_commits_on_evidence_and_holds_its_branch_against_single_frame_fli
     for k in range(30):
         # the wrong solution reprojects 0.3 px worse, except in frame 20 where noise makes it look better
         better_wrong = k == 20
-        measurement = hypotheses_for(truth, flipped(truth), camera, 0.4 if better_wrong else 0.1,
-                                     0.1 if better_wrong else 0.4)
+        measurement = hypotheses_for(
+            truth, flipped(truth), camera, 0.4 if better_wrong else 0.1, 0.1 if better_wrong else 0.4
+        )
         update = track.update(measurement, int(k * DT * 1e9), camera)
         states.append(update.state)
         assert angle_between_deg(update.pose.rotation, truth.rotation) < 1.0  # never shows the flip
@@ -128,8 +129,9 @@ def test_track_never_commits_below_the_bias_margin(camera):
     truth = Pose.from_matrix(np.diag([1.0, -1.0, -1.0]), [0, 0, 3.0])
     track = TargetTrack(FilterConfig(), marker_corners_in_marker(0.05))
     for k in range(200):  # 0.03 px systematic difference: below what the corner detector's bias can fake
-        update = track.update(hypotheses_for(truth, flipped(truth, 25.0), camera, 0.10, 0.13),
-                              int(k * DT * 1e9), camera)
+        update = track.update(
+            hypotheses_for(truth, flipped(truth, 25.0), camera, 0.10, 0.13), int(k * DT * 1e9), camera
+        )
         assert update.state == "ambiguous"
 
 

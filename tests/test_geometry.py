@@ -9,7 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ar_anchor.geometry import Pose, angle_between_deg, look_at, marker_corners_in_marker, matrix_from_rvec, rvec_from_matrix
+from ar_anchor.geometry import (
+    Pose,
+    angle_between_deg,
+    look_at,
+    marker_corners_in_marker,
+    matrix_from_rvec,
+    rvec_from_matrix,
+)
 
 finite = st.floats(-50.0, 50.0, allow_nan=False, allow_infinity=False)
 # rotation vectors with angle in [1e-4, pi - 1e-3] (the canonical range Rodrigues returns; below ~1e-5 rad
@@ -67,9 +74,7 @@ def test_look_at_puts_target_on_the_optical_axis_with_world_up_up_in_the_image()
 
 def test_marker_corner_order_is_ippe_square_order():
     h = 0.025
-    np.testing.assert_array_equal(
-        marker_corners_in_marker(0.05), [[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]]
-    )
+    np.testing.assert_array_equal(marker_corners_in_marker(0.05), [[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]])
 
 
 def test_pose_rejects_wrong_shapes():

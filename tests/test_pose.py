@@ -23,8 +23,13 @@ MAX_REPROJ = 3.0
 def test_pose_is_accurate_on_noise_free_frames(camera):
     # given noise-free renders of a marker 60..200 px wide from random directions
     source = SyntheticSource(
-        SyntheticScene(camera=camera, markers=(PlacedMarker(3, LENGTH, Pose.identity()),), frames=1,
-                       noise_sigma=0.0, blur_sigma=0.0)
+        SyntheticScene(
+            camera=camera,
+            markers=(PlacedMarker(3, LENGTH, Pose.identity()),),
+            frames=1,
+            noise_sigma=0.0,
+            blur_sigma=0.0,
+        )
     )
     detector = Detector(DetectorConfig())
     rng = np.random.default_rng(1)

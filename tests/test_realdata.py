@@ -52,10 +52,13 @@ def test_aruco_library_board_photo_markers_and_poses(realdata):
     storage.release()
     assert set(reference) <= set(detections.ids.tolist())
     # the reference is the ArUco library's own detector, not ground truth: agree to about a pixel
-    distances = np.concatenate([
-        _corner_distances(corners, reference[marker_id])
-        for marker_id, corners in zip(detections.ids.tolist(), detections.corners) if marker_id in reference
-    ])
+    distances = np.concatenate(
+        [
+            _corner_distances(corners, reference[marker_id])
+            for marker_id, corners in zip(detections.ids.tolist(), detections.corners)
+            if marker_id in reference
+        ]
+    )
     assert np.median(distances) < 0.75
     assert np.mean(distances < 1.0) >= 0.85
     for marker_id, corners in zip(detections.ids.tolist(), detections.corners):

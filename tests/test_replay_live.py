@@ -54,8 +54,7 @@ def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 def run_all(commands: dict[str, tuple[list[str], Path]]) -> dict[str, subprocess.CompletedProcess[str]]:
     """Run several CLI invocations concurrently (they are independent); results by key."""
     started = {
-        key: (subprocess.Popen(cli(args), cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
-              args)
+        key: (subprocess.Popen(cli(args), cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), args)
         for key, (args, cwd) in commands.items()
     }
     results = {}
@@ -86,8 +85,9 @@ def verify_rrd(path: Path) -> None:
     assert path.is_file() and path.stat().st_size > 0, f"{path} missing or empty"
     if not RERUN.exists():
         pytest.skip(f"{RERUN} not found: {path} not verified")
-    result = subprocess.run([str(RERUN), "rrd", "verify", str(path)], capture_output=True, text=True,
-                            timeout=TIMEOUT_S, check=False)
+    result = subprocess.run(
+        [str(RERUN), "rrd", "verify", str(path)], capture_output=True, text=True, timeout=TIMEOUT_S, check=False
+    )
     assert result.returncode == 0, result.stdout + result.stderr
 
 
@@ -171,15 +171,21 @@ class Sequence:
             camera=self.camera,
             markers=(PlacedMarker(0, MARKER_LENGTH_M, Pose.identity()),),
             trajectory=Trajectory(kind="orbit", near_m=0.40, azimuth_deg=30, elevation_deg=15),
-            frames=FRAMES, noise_sigma=1.0, blur_sigma=0.0, seed=1,
+            frames=FRAMES,
+            noise_sigma=1.0,
+            blur_sigma=0.0,
+            seed=1,
         )
         frames = list(SyntheticSource(scene))
         assert [f.index for f in frames] == list(range(FRAMES))
         self.images = [f.image for f in frames]
         self.truth: list[Pose] = [f.truth["marker:0"] for f in frames]
         for pose in self.truth:  # the marker is big enough for an accurate pose in every frame
-            pixels = self.camera.project(pose.apply(np.array(
-                [[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0]], dtype=float) * MARKER_LENGTH_M / 2))
+            pixels = self.camera.project(
+                pose.apply(
+                    np.array([[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0]], dtype=float) * MARKER_LENGTH_M / 2
+                )
+            )
             sides = np.linalg.norm(pixels - np.roll(pixels, -1, axis=0), axis=1)
             assert sides.min() >= 60, f"marker only {sides.min():.1f} px wide"
         self.camera_yml = root / "cam.yml"
@@ -206,9 +212,9 @@ def replays(sequence, tmp_path_factory):
     cwd = tmp_path_factory.mktemp("replays")
     sources = {"png": sequence.png_dir, "ffv1": sequence.mkv, "vp9": sequence.mp4}
     commands = {
-        kind: (["-q", "replay", str(source), "--camera", str(sequence.camera_yml), "--out", f"out_{kind}"],
-               cwd)
-        for kind, source in sources.items() if source is not None
+        kind: (["-q", "replay", str(source), "--camera", str(sequence.camera_yml), "--out", f"out_{kind}"], cwd)
+        for kind, source in sources.items()
+        if source is not None
     }
     results = run_all(commands)
     return {kind: (result, cwd / f"out_{kind}") for kind, result in results.items()}
@@ -290,9 +296,22 @@ def test_mp4_is_referenced_as_a_video_asset_and_mkv_logs_jpeg(replays):
 @pytest.mark.realdata
 def test_replay_of_a_real_video(realdata, tmp_path):
     folder = realdata / "aruco_testdata" / "chessboard"
-    result = run_cli(["-q", "replay", str(folder / "chessboard.avi"),
-                      "--camera", str(folder / "intrinsics.yml"), "--dictionary", "DICT_ARUCO_ORIGINAL",
-                      "--marker-length", "0.034", "--out", "out"], tmp_path)
+    result = run_cli(
+        [
+            "-q",
+            "replay",
+            str(folder / "chessboard.avi"),
+            "--camera",
+            str(folder / "intrinsics.yml"),
+            "--dictionary",
+            "DICT_ARUCO_ORIGINAL",
+            "--marker-length",
+            "0.034",
+            "--out",
+            "out",
+        ],
+        tmp_path,
+    )
     assert result.returncode == 0, describe(result)
     assert_no_traceback(result)
     summary = read_summary(tmp_path / "out")
@@ -367,8 +386,7 @@ def test_replay_of_a_truncated_video_is_exit_1_with_complete_outputs(tmp_path, s
     data = full.read_bytes()
     (tmp_path / "cut.avi").write_bytes(data[: len(data) // 2])
     # when it is replayed
-    result = run_cli(["-q", "replay", "cut.avi", "--camera", str(sequence.camera_yml), "--out", "out"],
-                     tmp_path)
+    result = run_cli(["-q", "replay", "cut.avi", "--camera", str(sequence.camera_yml), "--out", "out"], tmp_path)
     # then: run-time failure, one error line naming the file and saying it ended early
     assert result.returncode == 1, describe(result)
     assert_no_traceback(result)
@@ -390,8 +408,7 @@ def test_replay_of_a_truncated_video_is_exit_1_with_complete_outputs(tmp_path, s
 
 def test_camera_with_another_aspect_ratio_is_exit_2_naming_camera(tmp_path, sequence):
     CameraModel.from_fov(1280, 720, 1200.0).to_yaml(tmp_path / "cam720.yml")
-    result = run_cli(["-q", "replay", str(sequence.png_dir), "--camera", "cam720.yml", "--out", "out"],
-                     tmp_path)
+    result = run_cli(["-q", "replay", str(sequence.png_dir), "--camera", "cam720.yml", "--out", "out"], tmp_path)
     assert result.returncode == 2, describe(result)
     assert_no_traceback(result)
     lines = result.stderr.splitlines()
@@ -403,8 +420,7 @@ def test_camera_with_another_aspect_ratio_is_exit_2_naming_camera(tmp_path, sequ
 def test_camera_with_the_same_aspect_ratio_is_scaled_with_a_warning(tmp_path, sequence):
     # given the sequence's camera calibrated at twice the resolution (same lens, same aspect)
     CameraModel.from_fov(1280, 960, 1200.0).to_yaml(tmp_path / "cam960.yml")
-    result = run_cli(["-q", "replay", str(sequence.png_dir), "--camera", "cam960.yml", "--out", "out"],
-                     tmp_path)
+    result = run_cli(["-q", "replay", str(sequence.png_dir), "--camera", "cam960.yml", "--out", "out"], tmp_path)
     assert result.returncode == 0, describe(result)
     assert_no_traceback(result)
     assert "scaling intrinsics" in result.stderr, describe(result)
@@ -451,7 +467,10 @@ def test_sigint_during_replay_leaves_complete_outputs(tmp_path, sequence):
     out = tmp_path / "out"
     process = subprocess.Popen(
         cli(["-q", "replay", str(folder), "--camera", str(sequence.camera_yml), "--out", str(out)]),
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     # when it is interrupted once more than 10 frames are written
     _stdout, stderr = interrupt_when(process, out / "poses.csv", 10)
@@ -470,8 +489,23 @@ def test_sigint_during_replay_leaves_complete_outputs(tmp_path, sequence):
 
 
 def test_live_synthetic_device_writes_outputs(tmp_path):
-    result = run_cli(["-q", "live", "--device", "synthetic", "--max-frames", "15", "--out", "out",
-                      "--width", "640", "--height", "360"], tmp_path)
+    result = run_cli(
+        [
+            "-q",
+            "live",
+            "--device",
+            "synthetic",
+            "--max-frames",
+            "15",
+            "--out",
+            "out",
+            "--width",
+            "640",
+            "--height",
+            "360",
+        ],
+        tmp_path,
+    )
     assert result.returncode == 0, describe(result)
     assert_no_traceback(result)
     assert not error_lines(result.stderr), describe(result)
@@ -492,13 +526,28 @@ def test_live_synthetic_device_writes_outputs(tmp_path):
 
 def test_live_record_then_replay_is_frame_exact(tmp_path):
     # given a recorded live run
-    result = run_cli(["-q", "live", "--device", "synthetic", "--max-frames", "15", "--record", "--out", "out",
-                      "--width", "640", "--height", "360"], tmp_path)
+    result = run_cli(
+        [
+            "-q",
+            "live",
+            "--device",
+            "synthetic",
+            "--max-frames",
+            "15",
+            "--record",
+            "--out",
+            "out",
+            "--width",
+            "640",
+            "--height",
+            "360",
+        ],
+        tmp_path,
+    )
     assert result.returncode == 0, describe(result)
     assert_no_traceback(result)
     out = tmp_path / "out"
-    for name in ("raw.mkv", "raw.mkv.timestamps.csv", "camera.yml",
-                 "poses.csv", "summary.json", "recording.rrd"):
+    for name in ("raw.mkv", "raw.mkv.timestamps.csv", "camera.yml", "poses.csv", "summary.json", "recording.rrd"):
         assert (out / name).is_file(), f"{name} missing"
     camera = CameraModel.from_yaml(out / "camera.yml")
     assert camera.size == (640, 360)
@@ -523,9 +572,13 @@ def test_live_record_then_replay_is_frame_exact(tmp_path):
 def test_sigint_during_live_record_leaves_complete_outputs(tmp_path):
     out = tmp_path / "out"
     process = subprocess.Popen(
-        cli(["-q", "live", "--device", "synthetic", "--record", "--out", str(out),
-             "--width", "640", "--height", "360"]),
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cli(
+            ["-q", "live", "--device", "synthetic", "--record", "--out", str(out), "--width", "640", "--height", "360"]
+        ),
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     _stdout, stderr = interrupt_when(process, out / "poses.csv", 10)
     assert process.returncode == 130, stderr

@@ -99,7 +99,15 @@ def test_frames_carry_index_timestamp_and_truth_for_every_target(camera):
         frames = list(source)
     assert [f.index for f in frames] == [0, 1, 2, 3]
     assert [f.timestamp_ns for f in frames] == [0, 33_333_333, 66_666_667, 100_000_000]
-    assert set(frames[0].truth) == {"marker:0", "marker:7", "board:desk", "marker:10", "marker:11", "marker:12", "marker:13"}
+    assert set(frames[0].truth) == {
+        "marker:0",
+        "marker:7",
+        "board:desk",
+        "marker:10",
+        "marker:11",
+        "marker:12",
+        "marker:13",
+    }
     assert frames[0].image.shape == (720, 1280, 3) and frames[0].image.dtype == np.uint8
 
 
@@ -113,7 +121,9 @@ def test_board_truth_follows_opencv_board_frame(camera):
     poses = board_marker_poses(board)
     # then each marker's corners (TL, TR, BR, BL in its own frame) are OpenCV's object points
     for marker_id, object_points in zip(grid.getIds().ravel(), grid.getObjPoints()):
-        np.testing.assert_allclose(poses[int(marker_id)].apply(marker_corners_in_marker(0.04)), object_points, atol=1e-12)
+        np.testing.assert_allclose(
+            poses[int(marker_id)].apply(marker_corners_in_marker(0.04)), object_points, atol=1e-12
+        )
     # and the rendered board is detected where its truth says
     flip = Pose.from_matrix(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
     scene = SyntheticScene(camera=camera, boards=(PlacedBoard(board, flip),), frames=1, noise_sigma=0, blur_sigma=0)
@@ -151,6 +161,8 @@ def test_distorted_cameras_are_refused_by_the_renderer():
     from ar_anchor.camera import CameraModel
     from ar_anchor.errors import SourceError
 
-    camera = CameraModel(np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.array([0.1, 0, 0, 0, 0]), 640, 480)
+    camera = CameraModel(
+        np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.array([0.1, 0, 0, 0, 0]), 640, 480
+    )
     with pytest.raises(SourceError, match="distortion"):
         SyntheticScene(camera=camera)

@@ -124,7 +124,9 @@ class VideoFileSource(_FileSourceBase):
             raise SourceError(f"{self.path}: empty file (0 bytes), not a video")
         if not os.access(self.path, os.R_OK):
             raise SourceError(f"{self.path}: not readable (permission denied)")
-        sidecar = Path(timestamps) if timestamps is not None else self.path.with_name(self.path.name + ".timestamps.csv")
+        sidecar = (
+            Path(timestamps) if timestamps is not None else self.path.with_name(self.path.name + ".timestamps.csv")
+        )
         self._recorded: list[tuple[int, int]] | None = None
         if timestamps is not None or sidecar.is_file():
             self._recorded = read_timestamps_csv(sidecar)
@@ -180,8 +182,14 @@ class VideoFileSource(_FileSourceBase):
         while image is not None:
             frame_index, timestamp_ns = self._timestamp(index, position_ms, previous_ns)
             if image.shape[1::-1] != self._resolution:
-                log.warning("%s: frame %d has size %dx%d, expected %dx%d: stopping here", self.path, index,
-                            image.shape[1], image.shape[0], *self._resolution)
+                log.warning(
+                    "%s: frame %d has size %dx%d, expected %dx%d: stopping here",
+                    self.path,
+                    index,
+                    image.shape[1],
+                    image.shape[0],
+                    *self._resolution,
+                )
                 self.ended_early = True
                 return
             previous_ns = timestamp_ns
@@ -191,16 +199,22 @@ class VideoFileSource(_FileSourceBase):
             ok, image = self._read()
             position_ms = self._capture.get(cv2.CAP_PROP_POS_MSEC) if ok else math.nan
             if not ok and self._count is not None and index < self._count:
-                log.warning("%s: stream ended after frame %d of %d (damaged or truncated file); "
-                            "outputs cover frames 0..%d", self.path, index - 1, self._count, index - 1)
+                log.warning(
+                    "%s: stream ended after frame %d of %d (damaged or truncated file); outputs cover frames 0..%d",
+                    self.path,
+                    index - 1,
+                    self._count,
+                    index - 1,
+                )
                 self.ended_early = True
 
     def _timestamp(self, index: int, position_ms: float, previous_ns: int | None) -> tuple[int, int]:
         if self._recorded is not None and index < len(self._recorded):
             return self._recorded[index]
         if self._recorded is not None and index == len(self._recorded):
-            log.warning("%s: more frames than its timestamp file lists; using container time from frame %d",
-                        self.path, index)
+            log.warning(
+                "%s: more frames than its timestamp file lists; using container time from frame %d", self.path, index
+            )
         timestamp_ns = int(round((position_ms - self._first_ms) * 1e6)) if math.isfinite(position_ms) else -1
         if previous_ns is not None and timestamp_ns <= previous_ns:
             # containers without usable timestamps: fall back to the nominal frame rate
@@ -281,8 +295,14 @@ class ImageFolderSource(_FileSourceBase):
                 self.skipped += 1
                 continue
             if image.shape[1::-1] != self._resolution:
-                log.warning("%s: size %dx%d differs from the first image's %dx%d, skipped (frame %d)", path,
-                            image.shape[1], image.shape[0], *self._resolution, index)
+                log.warning(
+                    "%s: size %dx%d differs from the first image's %dx%d, skipped (frame %d)",
+                    path,
+                    image.shape[1],
+                    image.shape[0],
+                    *self._resolution,
+                    index,
+                )
                 self.skipped += 1
                 continue
             yield Frame(image, index, int(round(index * 1e9 / self.fps)))

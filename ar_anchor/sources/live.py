@@ -13,7 +13,6 @@ from __future__ import annotations
 import collections
 import glob
 import logging
-import os
 import threading
 import time
 from collections.abc import Iterator, Mapping
@@ -158,8 +157,9 @@ class LiveSource:
                     now = time.monotonic()
                     if failing_since is None:
                         failing_since = now
-                        log.warning("%s: stopped delivering frames; retrying for %.0f s", self.grabber.name,
-                                    self.reconnect_s)
+                        log.warning(
+                            "%s: stopped delivering frames; retrying for %.0f s", self.grabber.name, self.reconnect_s
+                        )
                     if now - failing_since > self.reconnect_s:
                         self.stats.ended_because = f"{self.grabber.name} gone for more than {self.reconnect_s:g} s"
                         log.warning("%s: giving up after %.0f s without frames", self.grabber.name, self.reconnect_s)
@@ -242,8 +242,14 @@ class WebcamGrabber:
     """A V4L2 camera by path (``/dev/video0``) or index, with requested size, fps and FOURCC."""
 
     def __init__(
-        self, device: str | int, *, width: int | None = None, height: int | None = None,
-        fps: float | None = None, fourcc: str | None = "MJPG", api: int = cv2.CAP_V4L2,
+        self,
+        device: str | int,
+        *,
+        width: int | None = None,
+        height: int | None = None,
+        fps: float | None = None,
+        fourcc: str | None = "MJPG",
+        api: int = cv2.CAP_V4L2,
     ) -> None:
         self.device = device
         self.api = api  # cv2.CAP_V4L2; another backend lets tests drive this code with a video file
@@ -284,13 +290,24 @@ class WebcamGrabber:
         }
         differs = any(
             want and str(want) != str(got) and not (isinstance(want, float) and abs(want - float(got)) < 0.5)
-            for want, got in zip(self.requested, (self.granted["width"], self.granted["height"], self.granted["fps"],
-                                                  self.granted["fourcc"]))
+            for want, got in zip(
+                self.requested,
+                (self.granted["width"], self.granted["height"], self.granted["fps"], self.granted["fourcc"]),
+            )
         )
-        log.log(logging.WARNING if differs else logging.INFO,
-                "%s: granted %dx%d at %.4g fps, %s (requested %sx%s at %s fps, %s)", self.name,
-                    self.granted["width"], self.granted["height"], self.granted["fps"], self.granted["fourcc"] or "?",
-                    width or "default", height or "default", fps or "default", fourcc or "default")
+        log.log(
+            logging.WARNING if differs else logging.INFO,
+            "%s: granted %dx%d at %.4g fps, %s (requested %sx%s at %s fps, %s)",
+            self.name,
+            self.granted["width"],
+            self.granted["height"],
+            self.granted["fps"],
+            self.granted["fourcc"] or "?",
+            width or "default",
+            height or "default",
+            fps or "default",
+            fourcc or "default",
+        )
         self._capture = capture
         return int(self.granted["width"]), int(self.granted["height"])
 

@@ -203,7 +203,9 @@ def demo_scene(
         lone_ids = [config.markers.ids[0]]
     for k, marker_id in enumerate(lone_ids):
         centre = np.array([-0.09, 0.045 - 0.1 * k, 0.0])
-        markers.append(PlacedMarker(marker_id, config.marker_length(marker_id), Pose(np.array([0, 0, 0.15 * k]), centre)))
+        markers.append(
+            PlacedMarker(marker_id, config.marker_length(marker_id), Pose(np.array([0, 0, 0.15 * k]), centre))
+        )
     boards = []
     y = 0.0
     for board in config.boards:
@@ -286,7 +288,9 @@ def _paper_quad(world_from_plane: Pose, x0: float, y0: float, x1: float, y1: flo
 def _clutter_texture(rng: np.random.Generator, size: int = 1024) -> np.ndarray:
     """A colourful, cluttered wall texture (BGR): shapes, lines, text and marker-like squares that do not decode."""
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
-    base = np.stack([150 + 40 * np.sin(6.3 * xx + 1.0), 140 + 30 * np.cos(4.1 * yy), 120 + 35 * np.sin(3.0 * (xx + yy))], -1)
+    base = np.stack(
+        [150 + 40 * np.sin(6.3 * xx + 1.0), 140 + 30 * np.cos(4.1 * yy), 120 + 35 * np.sin(3.0 * (xx + yy))], -1
+    )
     image = np.clip(base + rng.normal(0, 6, base.shape), 0, 255).astype(np.uint8)
     for _ in range(60):
         colour = tuple(int(c) for c in rng.integers(0, 256, 3))
@@ -320,11 +324,15 @@ class _Renderer:
         self.wall_texture = _clutter_texture(rng) if scene.clutter else np.full((8, 8, 3), 128, np.uint8)
         wall_m = 2.0
         ts = wall_m / self.wall_texture.shape[1]
-        self.wall_from_texture = np.array([[ts, 0.0, 0.5 * ts - wall_m / 2], [0.0, -ts, wall_m / 2 - 0.5 * ts], [0.0, 0.0, 1.0]])
+        self.wall_from_texture = np.array(
+            [[ts, 0.0, 0.5 * ts - wall_m / 2], [0.0, -ts, wall_m / 2 - 0.5 * ts], [0.0, 0.0, 1.0]]
+        )
         dictionary = cv2.aruco.getPredefinedDictionary(dictionary_id(scene.dictionary))
         self.groups: list[tuple[np.ndarray, list[_Quad]]] = []  # (centre in world, quads drawn in order)
         for marker in scene.markers:
-            quad = _marker_quad(dictionary, marker.marker_id, marker.length_m, marker.world_from_target, marker.length_m / 6)
+            quad = _marker_quad(
+                dictionary, marker.marker_id, marker.length_m, marker.world_from_target, marker.length_m / 6
+            )
             self.groups.append((marker.world_from_target.tvec, [quad]))
         for placed in scene.boards:
             board = placed.board
@@ -389,8 +397,12 @@ class _Renderer:
         hires_from_image = np.array([[s, 0.0, (s - 1) / 2.0 - s * x0], [0.0, s, (s - 1) / 2.0 - s * y0], [0, 0, 1.0]])
         homography = hires_from_image @ self._homography(camera_from_plane, quad.plane_from_texture)
         warped = cv2.warpPerspective(
-            quad.texture, homography, ((x1 - x0) * s, (y1 - y0) * s),
-            flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+            quad.texture,
+            homography,
+            ((x1 - x0) * s, (y1 - y0) * s),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
         )
         small = cv2.resize(warped.astype(np.float32), (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
         grey_premultiplied, coverage = small[..., 0], small[..., 1] / 255.0
@@ -451,8 +463,9 @@ class SyntheticSource:
         timestamp_ns = int(round(index * 1e9 / self.scene.fps))
         return Frame(image, index, timestamp_ns, {} if hidden else self.truth(camera_from_world))
 
-    def render_view(self, camera_from_world: Pose, rng: np.random.Generator | None = None, *,
-                    targets: bool = True) -> np.ndarray:
+    def render_view(
+        self, camera_from_world: Pose, rng: np.random.Generator | None = None, *, targets: bool = True
+    ) -> np.ndarray:
         """BGR uint8 image from any camera pose, with the scene's blur and noise (noise needs ``rng``)."""
         canvas = self._renderer.render(camera_from_world, targets=targets)
         if self.scene.blur_sigma > 0:
