@@ -139,7 +139,7 @@ class FilterConfig:
     decide_z: float = 3.0  # standard errors of confidence to commit
     switch_margin_px: float = 0.3  # stronger evidence needed to leave a committed branch
     switch_z: float = 5.0
-    evidence_noise_px: float = 0.1  # floor of the per-frame evidence noise
+    evidence_noise_px: float = 0.1  # prior per-frame evidence spread (a few frames' worth)
     evidence_cap_px: float = 3.0  # one frame's evidence is clipped to this
     single_solution_evidence_px: float = 2.0  # evidence when the other solution failed validation
     motion_weight_px_per_deg: float = 0.0  # evidence per degree of better agreement with the predicted motion

@@ -2,31 +2,32 @@
 
 Per target, a :class:`TargetTrack` carries
 
-* **two branches**, one per IPPE solution. Each new frame's solutions are associated to the
-  branches by their distance to each branch's constant-velocity prediction, so a branch follows
-  one physical interpretation through time (even where the two solutions cross, e.g. a marker
-  wobbling through fronto-parallel).
+* **two branches**, one per IPPE solution. The two solutions of a square are mirror images through
+  the line of sight (their normals' tilts away from it are opposite), so a small Kalman filter on
+  branch 0's tilt (:class:`_TiltTracker`) tells which solution continues which branch, through
+  crossings too (a view through fronto-parallel): where the noise hides which is which it coasts
+  on its velocity instead of guessing.
 * **evidence** for branch 0 against branch 1 over a window of frames: per frame, the difference of
-  their RMS reprojection errors (plus a small term for consistency with the predicted motion).
-  A branch is *committed* only when the window's mean difference exceeds ``decide_margin_px``
-  with ``decide_z`` standard errors of confidence. The margin is there because a corner
-  detector's own bias (a few hundredths of a pixel) differs systematically between the branches
-  too: evidence below it never decides, however long one waits. Such a target stays
-  ``ambiguous``, and its output holds the current best guess steadily instead of twitching.
-  Once committed, a switch needs stronger, sustained evidence (``switch_margin_px``, ``switch_z``).
-* a **smoother** on the chosen branch: an error-state Kalman filter on SO(3) (constant angular
-  velocity, rotation error as a body-frame rotation vector, so no Euler angles and no trouble
-  near 180 degrees) and a constant-velocity Kalman filter on translation (``filterpy`` does the
-  linear algebra). Measurement noise is the pose covariance implied by the corner noise through
-  the projection Jacobian: it grows with distance and shrinks with marker size in pixels. Process
-  noise is raised while the innovations say the target manoeuvres, so real motion is not lagged.
+  their RMS reprojection errors. A branch is *committed* (state ``tracked``) only when the window's
+  mean difference exceeds ``decide_margin_px`` with ``decide_z`` standard errors of confidence. The
+  margin is there because a corner detector's own bias (a few hundredths of a pixel) differs
+  systematically between the branches too: evidence below it never decides, however long one
+  waits. Such a target stays ``ambiguous``, and its output holds a steady best guess. Once
+  committed, a switch needs stronger, sustained evidence (``switch_margin_px``, ``switch_z``).
+* a **smoother** per branch: an error-state Kalman filter on SO(3) (rotation error as a body-frame
+  rotation vector, so no Euler angles and no trouble near 180 degrees) and, shared, one on
+  translation, each an IMM (``filterpy``) of a *still* model that averages a static marker over many
+  frames and a *moving* constant-velocity model that follows real motion without lag. Measurement
+  noise is the pose covariance implied by the corner noise through the projection Jacobian: it grows
+  with distance and shrinks with marker size in pixels; the corner noise is estimated online.
 * **dropouts**: missed frames are predicted (state ``predicted``) for up to ``max_missed_frames``;
   a target that returns is associated to its branches by prediction, so it re-acquires without a flip.
 
 A measured frame whose orientation jumps by more than ``flip_angle_deg`` while the position moves
-less than ``flip_translation_m`` is treated as a flip, not as motion, unless it persists. When the
-output branch changes, the output turns toward the new branch by at most ``max_output_step_deg``
-per frame, so even a correction never snaps.
+less than ``flip_translation_m`` (plus its noise) is treated as a flip, not as motion, unless it
+persists. While the position stays put the output turns at most ``max_output_step_deg`` per frame,
+so even a correction slews instead of snapping. ``tracked`` is only said of the committed branch,
+settled (not slewing), and with an orientation whose 3-sigma uncertainty is below a flip.
 """
 
 from __future__ import annotations
