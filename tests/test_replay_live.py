@@ -135,6 +135,19 @@ def interrupt_when(process: subprocess.Popen[str], poses: Path, frames: int) -> 
             process.communicate()
 
 
+def run_and_interrupt(argv: list[str], cwd: Path, out: Path, frames: int = 10) -> dict:
+    """Start ``ar-anchor argv``, SIGINT it once ``out/poses.csv`` holds more than ``frames`` frames, check
+    the clean stop (exit 130, no traceback, status interrupted, a valid recording), return summary.json."""
+    process = subprocess.Popen(cli(argv), cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _stdout, stderr = interrupt_when(process, out / "poses.csv", frames)
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    summary = read_summary(out)
+    assert summary["status"] == "interrupted"
+    verify_rrd(out / "recording.rrd")
+    return summary
+
+
 def count_decoded_frames(path: Path) -> int:
     capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     assert capture.isOpened(), f"{path}: cannot be opened"
@@ -465,24 +478,13 @@ def test_sigint_during_replay_leaves_complete_outputs(tmp_path, sequence):
         except OSError:
             shutil.copyfile(source, target)
     out = tmp_path / "out"
-    process = subprocess.Popen(
-        cli(["-q", "replay", str(folder), "--camera", str(sequence.camera_yml), "--out", str(out)]),
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    # when it is interrupted once more than 10 frames are written
-    _stdout, stderr = interrupt_when(process, out / "poses.csv", 10)
-    # then: exit 130, and every output is complete and agrees on the last frame
-    assert process.returncode == 130, stderr
-    assert "Traceback" not in stderr
-    summary = read_summary(out)
-    assert summary["status"] == "interrupted"
+    # when it is interrupted once more than 10 frames are written: a clean stop (see run_and_interrupt)
+    argv = ["-q", "replay", str(folder), "--camera", str(sequence.camera_yml), "--out", str(out)]
+    summary = run_and_interrupt(argv, tmp_path, out)
+    # then every output is complete and agrees on the last frame
     assert 10 < summary["frames"] < total
     rows = read_poses(out / "poses.csv")
     assert int(rows[-1]["frame"]) == summary["frames"] - 1
-    verify_rrd(out / "recording.rrd")
 
 
 # ============================================================================ 5. live, synthetic device
@@ -571,21 +573,8 @@ def test_live_record_then_replay_is_frame_exact(tmp_path):
 
 def test_sigint_during_live_record_leaves_complete_outputs(tmp_path):
     out = tmp_path / "out"
-    process = subprocess.Popen(
-        cli(
-            ["-q", "live", "--device", "synthetic", "--record", "--out", str(out), "--width", "640", "--height", "360"]
-        ),
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    _stdout, stderr = interrupt_when(process, out / "poses.csv", 10)
-    assert process.returncode == 130, stderr
-    assert "Traceback" not in stderr
-    summary = read_summary(out)
-    assert summary["status"] == "interrupted"
-    verify_rrd(out / "recording.rrd")
+    argv = ["-q", "live", "--device", "synthetic", "--record", "--out", str(out), "--width", "640", "--height", "360"]
+    summary = run_and_interrupt(argv, tmp_path, out)
     with (out / "raw.mkv.timestamps.csv").open(newline="") as handle:
         stamps = list(csv.DictReader(handle))
     assert count_decoded_frames(out / "raw.mkv") == len(stamps)
