@@ -551,12 +551,11 @@ class TargetTrack:
             if branch is None or hypothesis is None:
                 continue  # coasts on its prediction
             pose = hypothesis.pose
-            cov_rot, _ = pose_covariance(pose, self.points, camera, self.sigma_px)
+            cov_rot, cov_t = pose_covariance(pose, self.points, camera, self.sigma_px)
             jump = float(np.degrees(np.linalg.norm(branch.innovation(pose.rotation))))
             if index == self.output_branch and jump > cfg.flip_angle_deg and not self.slewing:
                 assert self.translation_filter is not None
                 moved = float(np.linalg.norm(pose.tvec - self.translation_filter.translation))
-                _, cov_t = pose_covariance(pose, self.points, camera, self.sigma_px)
                 if moved < cfg.flip_translation_m + 3.0 * math.sqrt(float(np.max(np.linalg.eigvalsh(cov_t)))):
                     self.pending_flip += 1
                     if self.pending_flip <= cfg.flip_persist_frames:

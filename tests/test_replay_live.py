@@ -135,6 +135,10 @@ def interrupt_when(process: subprocess.Popen[str], poses: Path, frames: int) -> 
             process.communicate()
 
 
+# a short synthetic live run at 640x360, shared by the live tests
+LIVE_15_FRAMES = ["-q", "live", "--device", "synthetic", "--max-frames", "15", "--width", "640", "--height", "360"]
+
+
 def run_and_interrupt(argv: list[str], cwd: Path, out: Path, frames: int = 10) -> dict:
     """Start ``ar-anchor argv``, SIGINT it once ``out/poses.csv`` holds more than ``frames`` frames, check
     the clean stop (exit 130, no traceback, status interrupted, a valid recording), return summary.json."""
@@ -492,20 +496,7 @@ def test_sigint_during_replay_leaves_complete_outputs(tmp_path, sequence):
 
 def test_live_synthetic_device_writes_outputs(tmp_path):
     result = run_cli(
-        [
-            "-q",
-            "live",
-            "--device",
-            "synthetic",
-            "--max-frames",
-            "15",
-            "--out",
-            "out",
-            "--width",
-            "640",
-            "--height",
-            "360",
-        ],
+        [*LIVE_15_FRAMES, "--out", "out"],
         tmp_path,
     )
     assert result.returncode == 0, describe(result)
@@ -529,21 +520,7 @@ def test_live_synthetic_device_writes_outputs(tmp_path):
 def test_live_record_then_replay_is_frame_exact(tmp_path):
     # given a recorded live run
     result = run_cli(
-        [
-            "-q",
-            "live",
-            "--device",
-            "synthetic",
-            "--max-frames",
-            "15",
-            "--record",
-            "--out",
-            "out",
-            "--width",
-            "640",
-            "--height",
-            "360",
-        ],
+        [*LIVE_15_FRAMES, "--record", "--out", "out"],
         tmp_path,
     )
     assert result.returncode == 0, describe(result)
