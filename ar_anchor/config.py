@@ -20,8 +20,10 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import numpy as np
 
 from .errors import ConfigError
+from .layouts import layout_from_mapping, read_layout
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -76,6 +78,8 @@ def dictionary_size(name: str) -> int:
 class DetectorConfig:
     dictionary: str = "DICT_4X4_50"
     corner_refinement: str = "subpix"
+    refinement_window: float = 0.3  # sub-pixel window, in marker cells (OpenCV's relativeCornerRefinmentWinSize)
+    min_perimeter_rate: float = 0.03  # smallest marker perimeter, as a fraction of the image's larger side
 
 
 @dataclass(frozen=True)
@@ -88,8 +92,21 @@ class MarkersConfig:
         return self.lengths_m.get(int(marker_id), self.length_m)
 
 
+BOARD_KINDS = ("grid", "charuco", "custom")
+
+
 @dataclass(frozen=True)
 class BoardConfig:
+    """A rigid board of markers, in OpenCV's ``Board.getObjPoints()`` frame for grid and ChArUco
+    (origin at the top-left outer corner, x right, y down, z into the board) and in the layout's own
+    frame for ``custom``.
+
+    kind ``grid``: ``cols`` x ``rows`` markers of ``marker_length_m`` with ``separation_m`` between them.
+    kind ``charuco``: ``cols`` x ``rows`` chessboard squares of ``square_length_m`` with markers of
+    ``marker_length_m`` in the white squares (``legacy``: OpenCV's pre-4.6 pattern for even rows).
+    kind ``custom``: ``layout`` gives each marker's four corners (TL, TR, BR, BL), planar or not.
+    """
+
     name: str
     kind: str = "grid"
     cols: int = 2
@@ -98,21 +115,83 @@ class BoardConfig:
     separation_m: float = 0.02
     first_id: int = 0
     ids: tuple[int, ...] = ()
+    square_length_m: float = 0.0
+    legacy: bool = False
+    dictionary: str = "DICT_4X4_50"
+    layout: tuple[tuple[int, tuple[tuple[float, float, float], ...]], ...] = ()
+    layout_source: str = ""
 
     @property
     def marker_ids(self) -> tuple[int, ...]:
-        """Ids in row-major order from the top-left marker (OpenCV's GridBoard order)."""
+        """Ids in row-major order from the top-left marker (OpenCV's GridBoard / CharucoBoard order)."""
+        if self.kind == "custom":
+            return tuple(marker_id for marker_id, _ in self.layout)
         if self.ids:
             return self.ids
-        return tuple(range(self.first_id, self.first_id + self.cols * self.rows))
+        count = self.cols * self.rows if self.kind == "grid" else (self.cols * self.rows) // 2
+        return tuple(range(self.first_id, self.first_id + count))
 
     @property
     def target(self) -> str:
         return f"board:{self.name}"
 
+    def corners_in_board(self) -> dict[int, np.ndarray]:
+        """Each marker's corners (4, 3) in the board frame, TL, TR, BR, BL as the detector orders them."""
+        if self.kind == "custom":
+            return {marker_id: np.array(corners, dtype=np.float64) for marker_id, corners in self.layout}
+        if self.kind == "charuco":
+            board = self.cv_board()
+            points = np.asarray(board.getObjPoints(), dtype=np.float64).reshape(-1, 4, 3)
+            return dict(zip(self.marker_ids, points))
+        out = {}
+        step = self.marker_length_m + self.separation_m
+        unit = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+        for index, marker_id in enumerate(self.marker_ids):
+            row, col = divmod(index, self.cols)
+            out[marker_id] = unit * self.marker_length_m + np.array([col * step, row * step, 0.0])
+        return out
+
+    def cv_board(self) -> cv2.aruco.Board:
+        """The OpenCV board object (for ``refineDetectedMarkers`` and ChArUco corner interpolation)."""
+        dictionary = cv2.aruco.getPredefinedDictionary(dictionary_id(self.dictionary))
+        ids = np.array(self.marker_ids, dtype=np.int32)
+        if self.kind == "charuco":
+            board = cv2.aruco.CharucoBoard(
+                (self.cols, self.rows), self.square_length_m, self.marker_length_m, dictionary, ids
+            )
+            board.setLegacyPattern(self.legacy)
+            return board
+        corners = self.corners_in_board()
+        points = [corners[i].astype(np.float32) for i in self.marker_ids]
+        return cv2.aruco.Board(points, dictionary, ids)
+
+    def marker_length_of(self, marker_id: int) -> float:
+        """Side of one of the board's markers (a custom layout's: its mean edge)."""
+        if self.kind != "custom":
+            return self.marker_length_m
+        corners = self.corners_in_board()[int(marker_id)]
+        return float(np.mean(np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)))
+
+    @property
+    def planar(self) -> bool:
+        """Do all corners lie in one plane (to 0.1 % of the board's extent)?"""
+        if self.kind != "custom":
+            return True
+        points = np.concatenate(list(self.corners_in_board().values()))
+        centred = points - points.mean(axis=0)
+        singular = np.linalg.svd(centred, compute_uv=False)
+        return bool(singular[2] <= 1e-3 * max(singular[0], 1e-12))
+
     @property
     def size_m(self) -> tuple[float, float]:
-        """(width, height) of the marker grid in metres, outer marker edges."""
+        """(width, height) of the board in metres: outer marker edges (grid), squares (ChArUco),
+        the layout's x/y extent (custom)."""
+        if self.kind == "charuco":
+            return (self.cols * self.square_length_m, self.rows * self.square_length_m)
+        if self.kind == "custom":
+            points = np.concatenate(list(self.corners_in_board().values()))
+            extent = points.max(axis=0) - points.min(axis=0)
+            return (float(extent[0]), float(extent[1]))
         return (
             self.cols * self.marker_length_m + (self.cols - 1) * self.separation_m,
             self.rows * self.marker_length_m + (self.rows - 1) * self.separation_m,
@@ -122,6 +201,8 @@ class BoardConfig:
 @dataclass(frozen=True)
 class PoseConfig:
     max_reproj_px: float = 3.0
+    board_inlier_px: float = 3.0  # a board marker (or corner) farther than this from the consensus is an outlier
+    recover_markers: bool = True  # look again for a board's missing markers (refineDetectedMarkers)
 
 
 @dataclass(frozen=True)
@@ -182,7 +263,7 @@ class TrackerConfig:
     def marker_length(self, marker_id: int) -> float:
         """Side of marker ``marker_id`` in metres (board markers take their board's length)."""
         board = self.board_of(marker_id)
-        return board.marker_length_m if board is not None else self.markers.length_of(marker_id)
+        return board.marker_length_of(marker_id) if board is not None else self.markers.length_of(marker_id)
 
     def tracks_marker(self, marker_id: int) -> bool:
         """Is this id one we track (a configured lone marker or a board member)?"""
@@ -204,7 +285,11 @@ class TrackerConfig:
                 dictionary_id(dictionary)
             except ConfigError as err:
                 raise ConfigError(f"--dictionary: {err}") from None
-            config = dataclasses.replace(config, detector=dataclasses.replace(config.detector, dictionary=dictionary))
+            config = dataclasses.replace(
+                config,
+                detector=dataclasses.replace(config.detector, dictionary=dictionary),
+                boards=tuple(dataclasses.replace(b, dictionary=dictionary) for b in config.boards),
+            )
         if marker_length_m is not None:
             if not (math.isfinite(marker_length_m) and marker_length_m > 0):
                 raise ConfigError(f"--marker-length: must be a positive length in metres, got {marker_length_m}")
@@ -284,6 +369,81 @@ def _in_range(lo: float, hi: float) -> Callable[[float], str | None]:
 _BOARD = BoardConfig(name="defaults")
 
 
+def _parse_board(bd: _Table, name: str, kind: str, dictionary: str, limit: int, path: str) -> BoardConfig:
+    """The kind-specific keys of one ``[[boards]]`` table (keys of other kinds are left: unknown)."""
+    if kind == "custom":
+        has_file, has_inline = "layout" in bd.data, "markers" in bd.data
+        if has_file == has_inline:
+            raise bd.fail("layout", 'a custom board needs either layout = "<file>" or inline [[boards.markers]]')
+        if has_file:
+            layout_name = bd.take("layout", str, None)
+            base = Path(path).parent if path and not path.startswith("<") else Path.cwd()
+            layout_path = base / layout_name
+            try:
+                layout = read_layout(layout_path)
+            except ConfigError as err:
+                raise bd.fail("layout", str(err)) from None
+            source = str(layout_path)
+        else:
+            try:
+                layout = layout_from_mapping({"markers": bd.data.pop("markers")}, "inline markers")
+            except ConfigError as err:
+                raise bd.fail("markers", str(err)) from None
+            source = "inline"
+        bad = [marker_id for marker_id, _ in layout if marker_id >= limit]
+        if bad:
+            raise bd.fail("layout", f"marker ids {bad} are outside the dictionary (0..{limit - 1})")
+        return BoardConfig(name=name, kind=kind, dictionary=dictionary, layout=layout, layout_source=source)
+    if kind == "charuco":
+        cols = bd.take("squares_x", int, 5, _in_range(2, 100))
+        rows = bd.take("squares_y", int, 7, _in_range(2, 100))
+        square = bd.take("square_length_m", float, None, _positive)
+        if square is None:
+            raise bd.fail("square_length_m", "is required for a charuco board")
+        marker = bd.take("marker_length_m", float, None, _positive)
+        if marker is None:
+            raise bd.fail("marker_length_m", "is required for a charuco board")
+        if marker >= square:
+            raise bd.fail("marker_length_m", f"must be smaller than square_length_m ({square:g}), got {marker!r}")
+        board_dictionary = bd.take("dictionary", str, dictionary)
+        if board_dictionary.upper() != dictionary.upper():
+            raise bd.fail("dictionary", f"must be the detector's dictionary ({dictionary}), got {board_dictionary!r}")
+        board = BoardConfig(
+            name=name,
+            kind=kind,
+            cols=cols,
+            rows=rows,
+            square_length_m=square,
+            marker_length_m=marker,
+            legacy=bd.take("legacy", bool, False),
+            first_id=bd.take("first_id", int, 0, _in_range(0, limit - 1)),
+            ids=bd.take_ids("ids", limit),
+            dictionary=dictionary,
+        )
+        count = (cols * rows) // 2
+    else:
+        board = BoardConfig(
+            name=name,
+            kind=kind,
+            cols=bd.take("cols", int, _BOARD.cols, _in_range(1, 100)),
+            rows=bd.take("rows", int, _BOARD.rows, _in_range(1, 100)),
+            marker_length_m=bd.take("marker_length_m", float, _BOARD.marker_length_m, _positive),
+            separation_m=bd.take("separation_m", float, _BOARD.separation_m, _non_negative),
+            first_id=bd.take("first_id", int, _BOARD.first_id, _in_range(0, limit - 1)),
+            ids=bd.take_ids("ids", limit),
+            dictionary=dictionary,
+        )
+        count = board.cols * board.rows
+    if board.ids and len(board.ids) != count:
+        formula = "cols*rows" if kind == "grid" else "squares_x*squares_y//2"
+        raise bd.fail("ids", f"needs {formula} = {count} ids, got {len(board.ids)}")
+    if not board.ids and board.first_id + count > limit:
+        raise bd.fail(
+            "first_id", f"ids {board.first_id}..{board.first_id + count - 1} exceed the dictionary's {limit} markers"
+        )
+    return board
+
+
 def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConfig:
     """Validate a parsed TOML document into a :class:`TrackerConfig`."""
     root = _Table(data, "top level", path)
@@ -301,6 +461,8 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         defaults.detector.corner_refinement,
         lambda v: None if v in CORNER_REFINEMENTS else f"must be one of {', '.join(CORNER_REFINEMENTS)}",
     )
+    window = det.take("refinement_window", float, defaults.detector.refinement_window, _in_range(0.05, 10.0))
+    perimeter = det.take("min_perimeter_rate", float, defaults.detector.min_perimeter_rate, _in_range(0.001, 4.0))
     det.done()
     limit = dictionary_size(dictionary)
 
@@ -326,33 +488,18 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         if not name or not name.replace("_", "").replace("-", "").isalnum():
             raise bd.fail("name", "is required: letters, digits, '-' and '_'")
         bd.where = f"[[boards]] '{name}'"
-        kind = bd.take("kind", str, "grid", lambda v: None if v == "grid" else "only 'grid' is supported")
-        board = BoardConfig(
-            name=name,
-            kind=kind,
-            cols=bd.take("cols", int, _BOARD.cols, _in_range(1, 100)),
-            rows=bd.take("rows", int, _BOARD.rows, _in_range(1, 100)),
-            marker_length_m=bd.take("marker_length_m", float, _BOARD.marker_length_m, _positive),
-            separation_m=bd.take("separation_m", float, _BOARD.separation_m, _non_negative),
-            first_id=bd.take("first_id", int, _BOARD.first_id, _in_range(0, limit - 1)),
-            ids=bd.take_ids("ids", limit),
+        kind = bd.take(
+            "kind", str, "grid", lambda v: None if v in BOARD_KINDS else f"must be one of {', '.join(BOARD_KINDS)}"
         )
+        board = _parse_board(bd, name, kind, dictionary, limit, path)
         bd.done()
-        if board.ids and len(board.ids) != board.cols * board.rows:
-            raise bd.fail("ids", f"needs cols*rows = {board.cols * board.rows} ids, got {len(board.ids)}")
-        if not board.ids and board.first_id + board.cols * board.rows > limit:
-            raise bd.fail(
-                "first_id",
-                f"ids {board.first_id}..{board.first_id + board.cols * board.rows - 1} "
-                f"exceed the dictionary's {limit} markers",
-            )
         if any(b.name == name for b in boards):
             raise bd.fail("name", "duplicate board name")
         for marker_id in board.marker_ids:
             if marker_id in seen_ids:
                 raise bd.fail("ids", f"marker id {marker_id} is already used by board '{seen_ids[marker_id]}'")
             seen_ids[marker_id] = name
-            if marker_id in lengths and abs(lengths[marker_id] - board.marker_length_m) > 1e-12:
+            if marker_id in lengths and abs(lengths[marker_id] - board.marker_length_of(marker_id)) > 1e-9:
                 raise bd.fail(
                     "marker_length_m",
                     f"marker {marker_id} also has [markers.lengths_m] "
@@ -361,7 +508,11 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         boards.append(board)
 
     ps = _Table(root.data.pop("pose", {}), "[pose]", path)
-    pose = PoseConfig(max_reproj_px=ps.take("max_reproj_px", float, defaults.pose.max_reproj_px, _positive))
+    pose = PoseConfig(
+        max_reproj_px=ps.take("max_reproj_px", float, defaults.pose.max_reproj_px, _positive),
+        board_inlier_px=ps.take("board_inlier_px", float, defaults.pose.board_inlier_px, _positive),
+        recover_markers=ps.take("recover_markers", bool, defaults.pose.recover_markers),
+    )
     ps.done()
 
     ft = _Table(root.data.pop("filter", {}), "[filter]", path)
@@ -408,7 +559,12 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     root.done()
 
     return TrackerConfig(
-        detector=DetectorConfig(dictionary=dictionary, corner_refinement=refinement),
+        detector=DetectorConfig(
+            dictionary=dictionary,
+            corner_refinement=refinement,
+            refinement_window=window,
+            min_perimeter_rate=perimeter,
+        ),
         markers=MarkersConfig(length_m=length_m, lengths_m=lengths, ids=ids),
         boards=tuple(boards),
         pose=pose,

@@ -146,7 +146,11 @@ CONFIG_ERRORS = [
     ("board-cols-zero", _BOARD_A + "cols = 0\n", r"\[\[boards\]\] 'a' cols: must be in \[1, 100\], got 0"),
     ("board-rows-negative", _BOARD_A + "rows = -2\n", r"\[\[boards\]\] 'a' rows: must be in \[1, 100\], got -2"),
     ("board-no-name", "[[boards]]\ncols = 2\n", r"\[\[boards\]\] #1 name: is required"),
-    ("board-bad-kind", _BOARD_A + "kind = 'charuco'\n", r"\[\[boards\]\] 'a' kind: only 'grid'"),
+    (
+        "board-bad-kind",
+        _BOARD_A + "kind = 'hexagon'\n",
+        r"\[\[boards\]\] 'a' kind: must be one of grid, charuco, custom",
+    ),
     ("board-unknown-key", _BOARD_A + "colums = 2\n", r"\[\[boards\]\] 'a'.*unknown key.*\bcolums\b"),
     (
         "board-ids-overlap",
