@@ -43,7 +43,7 @@ from filterpy.kalman import IMMEstimator, KalmanFilter
 from .camera import CameraModel
 from .config import FilterConfig
 from .geometry import Pose, angle_between_deg, matrix_from_rvec, rvec_from_matrix
-from .pose import MarkerPose, PoseHypothesis
+from .pose import BoardPose, MarkerPose, PoseHypothesis
 
 __all__ = [
     "RotationFilter",
@@ -371,10 +371,16 @@ class TargetTrack:
         bound = abs(mean) - z * stderr - margin
         return math.copysign(bound, mean) if bound > 0 else 0.0
 
+    def _margin_scale(self) -> float:
+        """The decision margins are set for one marker's four corners. A board's error difference is
+        an RMS over more points, whose detector biases (independent from marker to marker) partly
+        cancel: its margin shrinks with the square root of the number of points (four per marker)."""
+        return min(1.0, math.sqrt(4.0 / max(len(self.points), 4)))
+
     def _decide(self, events: list[TrackEvent]) -> None:
         cfg = self.config
         if self.committed is None:
-            bound = self._evidence_bound(cfg.decide_margin_px, cfg.decide_z)
+            bound = self._evidence_bound(cfg.decide_margin_px * self._margin_scale(), cfg.decide_z)
             if bound != 0.0:
                 self.committed = 0 if bound > 0 else 1
                 events.append(
@@ -385,7 +391,7 @@ class TargetTrack:
                     )
                 )
         else:
-            bound = self._evidence_bound(cfg.switch_margin_px, cfg.switch_z)
+            bound = self._evidence_bound(cfg.switch_margin_px * self._margin_scale(), cfg.switch_z)
             favoured = None if bound == 0.0 else (0 if bound > 0 else 1)
             if favoured is not None and favoured != self.committed:
                 events.append(
@@ -400,13 +406,15 @@ class TargetTrack:
     def _best_guess(self) -> int:
         """While ambiguous: keep the current output branch (a steady guess) unless the evidence leans the
         other way by half the decision margin with 2 standard errors: not enough to vouch for, enough to prefer."""
-        bound = self._evidence_bound(0.5 * self.config.decide_margin_px, 2.0)
+        bound = self._evidence_bound(0.5 * self.config.decide_margin_px * self._margin_scale(), 2.0)
         if bound == 0.0 or self.branches is None or self.branches[0 if bound > 0 else 1] is None:
             return self.output_branch
         return 0 if bound > 0 else 1
 
     # ------------------------------------------------------------------ per frame
-    def update(self, measurement: MarkerPose | None, timestamp_ns: int, camera: CameraModel) -> TrackUpdate | None:
+    def update(
+        self, measurement: MarkerPose | BoardPose | None, timestamp_ns: int, camera: CameraModel
+    ) -> TrackUpdate | None:
         """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen)."""
         dt = (
             1.0 / 30.0 if self.last_ns is None or timestamp_ns <= self.last_ns else (timestamp_ns - self.last_ns) * 1e-9
@@ -417,6 +425,8 @@ class TargetTrack:
         self.doubtful = False
         if measurement is None:
             return self._coast(dt, events)
+        # the correspondences of this frame (a board's visible markers change from frame to frame)
+        self.points = np.asarray(measurement.points_in_target, dtype=np.float64)
         self._update_noise(measurement)
         if self.branches is None:
             hypotheses = self._start(measurement, camera)

@@ -15,14 +15,17 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
 from .camera import CameraModel
-from .geometry import Pose, marker_corners_in_marker
+from .geometry import Pose, angle_between_deg, marker_corners_in_marker
 
 __all__ = [
+    "BoardPose",
+    "BoardSolver",
     "MarkerPose",
     "PoseFailure",
     "PoseHypothesis",
@@ -73,13 +76,26 @@ class MarkerPose:
     def best(self) -> PoseHypothesis:
         return self.hypotheses[0]
 
+    @property
+    def points_in_target(self) -> np.ndarray:
+        return marker_corners_in_marker(self.length_m)
+
+    @property
+    def points_in_image(self) -> np.ndarray:
+        return self.corners_in_image
+
 
 @dataclass(frozen=True)
 class PoseFailure:
     """Why a marker got no pose this frame."""
 
-    marker_id: int
+    marker_id: int  # -1 for a board
     reason: str
+    target: str = ""  # "board:<name>" for a board
+
+    def __post_init__(self) -> None:
+        if not self.target:
+            object.__setattr__(self, "target", f"marker:{self.marker_id}")
 
 
 def reprojection_rms(
@@ -191,3 +207,281 @@ def solve_marker(
     reason = "; ".join(reasons) or "no solution"
     log.debug("marker %d: no valid pose (%s)", marker_id, reason)
     return PoseFailure(marker_id, reason)
+
+
+# ---------------------------------------------------------------------------- boards
+
+
+@dataclass(frozen=True)
+class BoardPose:
+    """Validated pose hypotheses of one rigid board in one frame, solved jointly from its markers.
+
+    ``hypotheses``: one or two (a planar board's two IPPE solutions, which differ clearly once
+    several markers are seen, and are as ambiguous as a lone marker's when only one is), lower
+    error first. ``points_in_target`` / ``points_in_image``: the inlier correspondences the
+    hypotheses were solved from (marker corners, or ChArUco chessboard corners).
+    """
+
+    name: str
+    hypotheses: tuple[PoseHypothesis, ...]
+    ambiguity: float
+    points_in_target: np.ndarray
+    points_in_image: np.ndarray
+    markers_used: tuple[int, ...]  # ids of the inlier markers
+    outlier_ids: tuple[int, ...]  # board markers seen but rejected (wrong id, bad corners)
+    outlier_points_in_image: np.ndarray  # corners rejected individually or with their marker
+    corners_in_image: np.ndarray  # (M, 4, 2) the inlier markers' corners
+    solver: str
+
+    @property
+    def target(self) -> str:
+        return f"board:{self.name}"
+
+    @property
+    def best(self) -> PoseHypothesis:
+        return self.hypotheses[0]
+
+    @property
+    def inliers(self) -> int:
+        return len(self.points_in_target)
+
+
+def _faces_camera(pose: Pose, quads_in_target: np.ndarray) -> bool:
+    """Is the camera on the printed side of every marker? (A marker's printed side is where
+    (TR - TL) x (TL - BL) points, the +z of its own IPPE frame.)"""
+    quads = np.asarray(quads_in_target, dtype=np.float64).reshape(-1, 4, 3)
+    normals = np.cross(quads[:, 1] - quads[:, 0], quads[:, 0] - quads[:, 3])
+    centre = pose.camera_centre()
+    return bool(np.all(np.einsum("ij,ij->i", normals, centre - quads.mean(axis=1)) > 0))
+
+
+class BoardSolver:
+    """Joint pose of one board from the detected corners of its markers (see :meth:`solve`).
+
+    1. **Candidates**: every detected board marker alone gives up to two board poses (IPPE on its
+       four corners in the board frame); with four or more markers, ``solvePnPRansac`` over all
+       corners gives one more.
+    2. **Consensus** (RANSAC across markers, each marker a minimal sample; exhaustive, so
+       deterministic): a candidate's inliers are the markers whose corners it reprojects within
+       ``inlier_px``; the candidate with most inliers (then lowest error) wins and is refined on
+       them and re-scored until the inlier set is stable. Wrong ids and mangled markers fall out.
+    3. **Refinement** on the inliers: planar boards IPPE (both solutions kept, as for a lone
+       marker), others SQPNP; then ``solvePnPRefineLM``; single corners still off by more than
+       ``inlier_px`` are dropped and the pose refined once more.
+    4. **Validation** as for markers (:func:`check_pose`), and the camera must see the printed
+       side of every inlier marker. ChArUco boards solve from the chessboard corners interpolated
+       from the inlier markers when there are enough of them.
+    """
+
+    def __init__(self, board: Any, inlier_px: float = 3.0) -> None:
+        self.board = board
+        self.name: str = board.name
+        self.corners = board.corners_in_board()
+        self.planar: bool = board.planar
+        self.inlier_px = inlier_px
+        self.cv_board = board.cv_board()
+        self.charuco = None
+        if board.kind == "charuco":
+            self.charuco = self.cv_board
+            self.chessboard = np.asarray(self.cv_board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+
+    def solve(
+        self,
+        ids: np.ndarray,
+        corners: np.ndarray,
+        camera: CameraModel,
+        max_reproj_px: float = 3.0,
+        image: np.ndarray | None = None,
+    ) -> BoardPose | PoseFailure | None:
+        """Pose from this frame's detections (all of them: other ids are ignored). None: no marker of the board."""
+        members = [
+            (int(i), np.asarray(c, np.float64).reshape(4, 2))
+            for i, c in zip(np.asarray(ids).reshape(-1), np.asarray(corners).reshape(-1, 4, 2))
+            if int(i) in self.corners and _quad_problem(np.asarray(c, np.float64).reshape(4, 2)) is None
+        ]
+        if not members:
+            return None
+        member_ids = [m for m, _ in members]
+        obj = np.stack([self.corners[m] for m in member_ids])  # (M, 4, 3)
+        img = np.stack([c for _, c in members])  # (M, 4, 2)
+        k, dist = camera.camera_matrix, camera.dist_or_none
+
+        candidates = self._candidates(obj, img, k, dist)
+        if not candidates:
+            return self._fail("no solver gave a finite pose")
+        best_pose, inliers = None, np.zeros(len(members), bool)
+        best_key = (-1, math.inf)
+        for pose in candidates:
+            errors = self._marker_errors(pose, obj, img, k, dist)
+            mask = errors < self.inlier_px
+            key = (int(mask.sum()), float(np.sum(np.where(mask, errors, 0.0))))
+            if key[0] > best_key[0] or (key[0] == best_key[0] and key[1] < best_key[1]):
+                best_key, best_pose, inliers = key, pose, mask
+        if best_pose is None or not inliers.any():
+            return self._fail("no pose agrees with any of its markers")
+        for _ in range(3):  # refine on the consensus, re-score, until the inlier set is stable
+            refined = _refine_lm(best_pose, obj[inliers].reshape(-1, 3), img[inliers].reshape(-1, 2), k, dist)
+            mask = self._marker_errors(refined, obj, img, k, dist) < self.inlier_px
+            best_pose = refined
+            if not mask.any() or np.array_equal(mask, inliers):
+                break
+            inliers = mask
+        used = [m for m, ok in zip(member_ids, inliers) if ok]
+        outliers = tuple(m for m, ok in zip(member_ids, inliers) if not ok)
+        points_obj, points_img = obj[inliers].reshape(-1, 3), img[inliers].reshape(-1, 2)
+        outlier_points = [img[~inliers].reshape(-1, 2)]
+        solver = "markers"
+        if self.charuco is not None and image is not None:
+            chess = self._charuco_corners(image, obj[inliers], img[inliers], np.array(used), camera)
+            if chess is not None and len(chess[0]) >= 6:
+                points_obj, points_img = chess
+                solver = "charuco"
+        # single corners still off (a marker half occluded, a smeared corner): drop them
+        residual = _residuals(best_pose, points_obj, points_img, k, dist)
+        keep = residual < self.inlier_px
+        if 4 <= keep.sum() < len(keep):
+            outlier_points.append(points_img[~keep])
+            points_obj, points_img = points_obj[keep], points_img[keep]
+        hypotheses = self._final(best_pose, points_obj, points_img, obj[inliers], camera, max_reproj_px)
+        if isinstance(hypotheses, str):
+            return self._fail(hypotheses)
+        errors = [h.reproj_px for h in hypotheses]
+        ambiguity = (errors[1] + _RATIO_EPS_PX) / (errors[0] + _RATIO_EPS_PX) if len(errors) == 2 else math.nan
+        return BoardPose(
+            name=self.name,
+            hypotheses=hypotheses,
+            ambiguity=ambiguity,
+            points_in_target=points_obj,
+            points_in_image=points_img,
+            markers_used=tuple(used),
+            outlier_ids=outliers,
+            outlier_points_in_image=np.concatenate(outlier_points) if outlier_points else np.zeros((0, 2)),
+            corners_in_image=img[inliers],
+            solver=solver,
+        )
+
+    # -------------------------------------------------------------- steps
+    def _fail(self, reason: str) -> PoseFailure:
+        log.debug("board %s: %s", self.name, reason)
+        return PoseFailure(-1, reason, target=f"board:{self.name}")
+
+    def _candidates(self, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None) -> list[Pose]:
+        out = []
+        for quad_obj, quad_img in zip(obj, img):
+            try:
+                count, rvecs, tvecs, _ = cv2.solvePnPGeneric(quad_obj, quad_img, k, dist, flags=cv2.SOLVEPNP_IPPE)
+            except cv2.error:
+                continue
+            out.extend(Pose(np.ravel(r), np.ravel(t)) for r, t in zip(rvecs[:count], tvecs[:count]))
+        if len(obj) >= 4:
+            try:
+                ok, rvec, tvec, _ = cv2.solvePnPRansac(
+                    obj.reshape(-1, 3),
+                    img.reshape(-1, 2),
+                    k,
+                    dist,
+                    iterationsCount=100,
+                    reprojectionError=self.inlier_px,
+                    confidence=0.999,
+                    flags=cv2.SOLVEPNP_SQPNP if not self.planar else cv2.SOLVEPNP_EPNP,
+                )
+                if ok:
+                    out.append(Pose(np.ravel(rvec), np.ravel(tvec)))
+            except cv2.error:
+                pass
+        return [p for p in out if p.is_finite() and np.linalg.norm(p.tvec) < MAX_DISTANCE_M]
+
+    @staticmethod
+    def _marker_errors(
+        pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None
+    ) -> np.ndarray:
+        """RMS corner error per marker (inf where a marker is behind the camera)."""
+        residual = _residuals(pose, obj.reshape(-1, 3), img.reshape(-1, 2), k, dist).reshape(-1, 4)
+        errors = np.sqrt(np.mean(residual**2, axis=1))
+        depth = pose.apply(obj.reshape(-1, 3))[:, 2].reshape(-1, 4)
+        errors[np.any(depth <= 1e-6, axis=1)] = np.inf
+        return errors
+
+    def _charuco_corners(
+        self, image: np.ndarray, obj: np.ndarray, img: np.ndarray, ids: np.ndarray, camera: CameraModel
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """ChArUco chessboard corners interpolated from the inlier markers (calibrated, so the
+        interpolation follows the lens), with their board coordinates."""
+        params = cv2.aruco.CharucoParameters()
+        params.cameraMatrix = camera.camera_matrix
+        if camera.dist_or_none is not None:
+            params.distCoeffs = camera.dist_or_none
+        detector = cv2.aruco.CharucoDetector(self.charuco, params)
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        try:
+            chess_corners, chess_ids, _, _ = detector.detectBoard(
+                grey,
+                markerCorners=[c.reshape(1, 4, 2).astype(np.float32) for c in img],
+                markerIds=ids.reshape(-1, 1).astype(np.int32),
+            )
+        except cv2.error as err:
+            log.debug("board %s: ChArUco interpolation failed: %s", self.name, str(err).strip().splitlines()[-1])
+            return None
+        if chess_ids is None or len(chess_ids) == 0:
+            return None
+        chess_ids = chess_ids.reshape(-1)
+        return self.chessboard[chess_ids], np.asarray(chess_corners, np.float64).reshape(-1, 2)
+
+    def _final(
+        self,
+        start: Pose,
+        points_obj: np.ndarray,
+        points_img: np.ndarray,
+        quads_obj: np.ndarray,
+        camera: CameraModel,
+        max_reproj_px: float,
+    ) -> tuple[PoseHypothesis, ...] | str:
+        k, dist = camera.camera_matrix, camera.dist_or_none
+        flag = cv2.SOLVEPNP_IPPE if self.planar else cv2.SOLVEPNP_SQPNP
+        seeds = [start]
+        try:
+            count, rvecs, tvecs, _ = cv2.solvePnPGeneric(points_obj, points_img, k, dist, flags=flag)
+            seeds += [Pose(np.ravel(r), np.ravel(t)) for r, t in zip(rvecs[:count], tvecs[:count])]
+        except cv2.error:
+            pass
+        found: list[PoseHypothesis] = []
+        reasons = []
+        for seed in seeds:
+            if not seed.is_finite():
+                continue
+            pose = _refine_lm(seed, points_obj, points_img, k, dist)
+            error, reason = check_pose(pose, points_obj, points_img, camera, max_reproj_px, require_front=False)
+            if reason is None and not _faces_camera(pose, quads_obj):
+                reason = "board seen from behind"
+            if reason is not None:
+                reasons.append(reason)
+                continue
+            if any(angle_between_deg(pose.rotation, h.pose.rotation) < 0.5 for h in found):
+                continue  # the same solution reached twice
+            found.append(PoseHypothesis(pose, error))
+        if not found:
+            return "; ".join(dict.fromkeys(reasons)) or "no valid solution"
+        found.sort(key=lambda h: h.reproj_px)
+        return tuple(found[:2])
+
+
+def _residuals(pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    projected, _ = cv2.projectPoints(np.asarray(obj, np.float64), pose.rvec, pose.tvec, k, dist)
+    return np.linalg.norm(projected.reshape(-1, 2) - np.asarray(img, np.float64).reshape(-1, 2), axis=1)
+
+
+def _refine_lm(pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None) -> Pose:
+    """``solvePnPRefineLM`` from ``pose``; the start pose when the refinement fails or diverges."""
+    if len(obj) < 4:
+        return pose
+    rvec, tvec = pose.rvec.reshape(3, 1).copy(), pose.tvec.reshape(3, 1).copy()
+    try:
+        rvec, tvec = cv2.solvePnPRefineLM(np.asarray(obj, np.float64), np.asarray(img, np.float64), k, dist, rvec, tvec)
+    except cv2.error:
+        return pose
+    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return pose
+    refined = Pose.from_matrix(cv2.Rodrigues(rvec)[0], np.ravel(tvec))  # rotation angle folded into [0, pi]
+    before = float(np.mean(_residuals(pose, obj, img, k, dist) ** 2))
+    after = float(np.mean(_residuals(refined, obj, img, k, dist) ** 2))
+    return refined if after <= before else pose

@@ -20,7 +20,7 @@ from .config import TrackerConfig
 from .detection import Detector, MarkerDetections
 from .filtering import TargetTrack
 from .geometry import Pose, marker_corners_in_marker
-from .pose import MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
+from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 from .sources.base import Frame
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
@@ -57,6 +57,11 @@ class TargetResult:
     branch_poses: tuple[Pose | None, ...] = ()  # this frame's solution on each filter branch
     evidence_px: float = math.nan  # signed flip evidence (+: branch 0), see filtering.py
     events: tuple[str, ...] = ()  # filter events this frame (commits, switches, rejected flips, resets)
+    outline_in_target: np.ndarray | None = None  # (K, 4, 3) the target's marker squares, target frame
+    markers_used: tuple[int, ...] = ()  # boards: ids of the inlier markers this frame
+    outlier_ids: tuple[int, ...] = ()  # boards: markers seen but rejected this frame
+    inliers: int = 0  # corners (or ChArUco corners) the pose was solved from
+    outlier_points_in_image: np.ndarray | None = None  # boards: rejected corners this frame
 
     def __post_init__(self) -> None:
         if self.state not in STATES:
@@ -96,6 +101,7 @@ class Tracker:
         self.detector = Detector(config.detector)
         self._cameras: dict[tuple[int, int], CameraModel] = {camera.size: camera}
         self.tracks: dict[str, TargetTrack] = {}
+        self.board_solvers = [BoardSolver(board, config.pose.board_inlier_px) for board in config.boards]
 
     def camera_for(self, size: tuple[int, int]) -> CameraModel:
         """The calibration scaled to a frame size (warns once per new size)."""
@@ -104,19 +110,31 @@ class Tracker:
         return self._cameras[size]
 
     def reports(self, target: str) -> bool:
-        """Does this tracker output poses for ``target`` (``marker:<id>`` / ``board:<name>``)?
-
-        Boards are detected through their markers; their joint pose is not solved yet.
-        """
+        """Does this tracker output poses for ``target`` (``marker:<id>`` / ``board:<name>``)?"""
         kind, _, ident = target.partition(":")
+        if kind == "board":
+            return any(b.name == ident for b in self.config.boards)
         return kind == "marker" and ident.isdigit() and self.config.tracks_marker(int(ident))
+
+    def outline(self, target: str) -> np.ndarray:
+        """The target's marker squares (K, 4, 3) in its own frame (for drawing it in 3D)."""
+        kind, _, ident = target.partition(":")
+        if kind == "board":
+            corners = next(s.corners for s in self.board_solvers if s.name == ident)
+            return np.stack(list(corners.values()))
+        return marker_corners_in_marker(self.config.marker_length(int(ident)))[None]
 
     def process(self, frame: Frame) -> FrameResult:
         camera = self.camera_for(frame.size)
         t0 = time.perf_counter()
         detections = self.detector.detect(frame.image)
+        if self.config.pose.recover_markers:
+            for solver in self.board_solvers:
+                detections = self.detector.recover(
+                    frame.image, detections, solver.cv_board, camera.camera_matrix, camera.dist_or_none
+                )
         t1 = time.perf_counter()
-        measured: dict[str, MarkerPose] = {}
+        measured: dict[str, MarkerPose | BoardPose] = {}
         failures: list[PoseFailure] = []
         for marker_id, corners in zip(detections.ids.tolist(), detections.corners):
             if not self.config.tracks_marker(marker_id):
@@ -128,72 +146,103 @@ class Tracker:
                 failures.append(solved)
                 continue
             measured[f"marker:{marker_id}"] = solved
+        for solver in self.board_solvers:
+            board = solver.solve(
+                detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, image=frame.image
+            )
+            if isinstance(board, PoseFailure):
+                failures.append(board)
+            elif board is not None:
+                measured[board.target] = board
         t2 = time.perf_counter()
         if self.config.filter.enabled:
             targets = self._filter(measured, frame.timestamp_ns, camera)
         else:
-            targets = {name: _marker_result(solved) for name, solved in measured.items()}
+            targets = {name: self._raw_result(name, solved, camera) for name, solved in measured.items()}
         t3 = time.perf_counter()
         latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
         return FrameResult(frame.index, frame.timestamp_ns, detections, targets, tuple(failures), latency, camera)
 
     def _filter(
-        self, measured: dict[str, MarkerPose], timestamp_ns: int, camera: CameraModel
+        self, measured: dict[str, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel
     ) -> dict[str, TargetResult]:
         targets: dict[str, TargetResult] = {}
-        for name in sorted(set(measured) | set(self.tracks), key=_marker_order):
+        for name in sorted(set(measured) | set(self.tracks), key=_target_order):
             solved = measured.get(name)
             track = self.tracks.get(name)
             if track is None:
                 assert solved is not None
-                track = self.tracks[name] = TargetTrack(self.config.filter, marker_corners_in_marker(solved.length_m))
+                track = self.tracks[name] = TargetTrack(self.config.filter, solved.points_in_target)
             update = track.update(solved, timestamp_ns, camera)
             for event in update.events if update is not None else ():
                 log.info("%s: %s", name, event.message)
             if update is None:  # lost for too long: the track is reset
                 del self.tracks[name]
                 continue
-            length = solved.length_m if solved is not None else self.config.marker_length(int(name.split(":")[1]))
-            targets[name] = TargetResult(
-                target=name,
-                state=update.state,
-                pose=update.pose,
-                raw=solved.best.pose if solved is not None else None,
-                reproj_px=(
-                    reprojection_rms(update.pose, track.points, solved.corners_in_image, camera)
-                    if solved is not None
-                    else math.nan
-                ),
-                ambiguity=solved.ambiguity if solved is not None else math.nan,
-                length_m=length,
-                hypotheses=solved.hypotheses if solved is not None else (),
-                corners_in_image=solved.corners_in_image[None] if solved is not None else None,
+            targets[name] = self._result(
+                name,
+                update.state,
+                update.pose,
+                solved,
+                camera,
                 branch_poses=update.hypotheses,
                 evidence_px=update.evidence,
                 events=tuple(f"{e.kind}: {e.message}" for e in update.events),
             )
         return targets
 
+    def _raw_result(self, name: str, solved: MarkerPose | BoardPose, camera: CameraModel) -> TargetResult:
+        """``--no-filter``: the lower-error solution as it is, state ``tracked``."""
+        return self._result(name, "tracked", solved.best.pose, solved, camera)
+
+    def _result(
+        self, name: str, state: str, pose: Pose, solved: MarkerPose | BoardPose | None, camera: CameraModel, **extra
+    ) -> TargetResult:
+        board = isinstance(solved, BoardPose) or name.startswith("board:")
+        if name.startswith("marker:"):
+            length = self.config.marker_length(int(name.split(":")[1]))
+        else:
+            solver = next(s for s in self.board_solvers if f"board:{s.name}" == name)
+            length = min(solver.board.marker_length_of(i) for i in solver.corners)
+        if solved is None:
+            return TargetResult(
+                target=name,
+                state=state,
+                pose=pose,
+                raw=None,
+                reproj_px=math.nan,
+                ambiguity=math.nan,
+                length_m=length,
+                outline_in_target=self.outline(name),
+                **extra,
+            )
+        return TargetResult(
+            target=name,
+            state=state,
+            pose=pose,
+            raw=solved.best.pose,
+            reproj_px=reprojection_rms(pose, solved.points_in_target, solved.points_in_image, camera),
+            ambiguity=math.nan if board else _finite_or_nan(solved.ambiguity),
+            length_m=length,
+            hypotheses=solved.hypotheses,
+            corners_in_image=solved.corners_in_image.reshape(-1, 4, 2),
+            outline_in_target=self.outline(name),
+            markers_used=solved.markers_used if isinstance(solved, BoardPose) else (solved.marker_id,),
+            outlier_ids=solved.outlier_ids if isinstance(solved, BoardPose) else (),
+            inliers=len(solved.points_in_target),
+            outlier_points_in_image=solved.outlier_points_in_image if isinstance(solved, BoardPose) else None,
+            **extra,
+        )
+
     def reset(self) -> None:
         """Forget all tracks (e.g. after a cut in the video)."""
         self.tracks.clear()
 
 
-def _marker_order(name: str) -> tuple[str, int]:
+def _target_order(name: str) -> tuple[str, int, str]:
     kind, _, ident = name.partition(":")
-    return kind, int(ident) if ident.isdigit() else -1
+    return kind, int(ident) if ident.isdigit() else -1, ident
 
 
-def _marker_result(solved: MarkerPose) -> TargetResult:
-    best = solved.best
-    return TargetResult(
-        target=f"marker:{solved.marker_id}",
-        state="tracked",
-        pose=best.pose,
-        raw=best.pose,
-        reproj_px=best.reproj_px,
-        ambiguity=solved.ambiguity if math.isfinite(solved.ambiguity) else math.nan,
-        length_m=solved.length_m,
-        hypotheses=solved.hypotheses,
-        corners_in_image=solved.corners_in_image[None],
-    )
+def _finite_or_nan(value: float) -> float:
+    return value if math.isfinite(value) else math.nan

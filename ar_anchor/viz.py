@@ -5,7 +5,9 @@ Entity tree
 ``camera/image``                  the frame (JPEG), with ``markers`` outlines + ids and ``corners``
 ``world``                         the anchor target's frame (the first target that gets a pose)
 ``world/camera``                  ``world_from_camera`` (so the camera centre is ``C = -R^T t``) + ``Pinhole``
-``world/targets/<target>``        ``world_from_target`` of every other target, drawn as its square + axes
+``world/targets/<target>``        ``world_from_target`` of every other target, drawn as its marker squares + axes
+``camera/image/boards/<board>/inliers|outliers``  the corners a board's pose used / rejected
+``metrics/inliers/<board>``       corners a board's pose was solved from
 ``world/truth_camera``            the true camera centre (synthetic sources)
 ``metrics/reproj_px/<target>``    RMS reprojection error of the output pose
 ``metrics/ambiguity/<target>``    IPPE error ratio (worse / better; near 1 = ambiguous)
@@ -39,7 +41,7 @@ from .config import RecordingConfig
 from .errors import OutputError
 from .geometry import Pose, angle_between_deg, marker_corners_in_marker
 from .sources.base import Frame
-from .tracker import FrameResult
+from .tracker import FrameResult, TargetResult
 
 __all__ = ["RerunRecorder", "default_blueprint"]
 
@@ -83,6 +85,7 @@ def default_blueprint() -> rrb.Blueprint:
                     ),
                     rrb.TimeSeriesView(origin="metrics/flip_evidence_px", name="Flip evidence (px, + = branch 0)"),
                     rrb.TimeSeriesView(origin="metrics/rotation_error_deg", name="Rotation error vs truth (deg)"),
+                    rrb.TimeSeriesView(origin="metrics/inliers", name="Board inliers (corners)"),
                     rrb.TimeSeriesView(origin="metrics/latency", name="Latency (ms)"),
                 ),
                 column_shares=[3, 3, 2],
@@ -182,11 +185,14 @@ class RerunRecorder:
             static=True,
         )
 
-    def _log_static_target(self, name: str, length_m: float, is_anchor: bool) -> None:
+    def _log_static_target(self, name: str, target: TargetResult, is_anchor: bool) -> None:
+        """The target as a 3D object: its marker squares (one for a marker, all of a board's)."""
         path = "world" if is_anchor else f"world/targets/{entity_name(name)}"
-        square = np.vstack([marker_corners_in_marker(length_m), marker_corners_in_marker(length_m)[:1]])
+        length_m = target.length_m
         self.rec.log(
-            f"{path}/outline", rr.LineStrips3D([square], colors=[(230, 230, 230)], radii=[length_m / 60]), static=True
+            f"{path}/outline",
+            rr.LineStrips3D(_closed_squares(target), colors=[(230, 230, 230)], radii=[length_m / 60]),
+            static=True,
         )
         self.rec.log(f"{path}/axes", rr.TransformAxes3D(axis_length=length_m * 0.75), static=True)
         self.rec.log(f"{path}/label", rr.Points3D([[0, 0, 0]], labels=[name], radii=[length_m / 40]), static=True)
@@ -232,6 +238,18 @@ class RerunRecorder:
         self.rec.log("camera/image/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=[1.0]))
         corners = result.detections.corners.reshape(-1, 2)
         self.rec.log("camera/image/corners", rr.Points2D(to_rerun(corners), radii=[1.5], colors=[(255, 0, 255)]))
+        for name, target in result.targets.items():
+            if not name.startswith("board:"):
+                continue
+            path = f"camera/image/boards/{entity_name(name)}"
+            inliers = (
+                target.corners_in_image.reshape(-1, 2) if target.corners_in_image is not None else np.zeros((0, 2))
+            )
+            outliers = (
+                target.outlier_points_in_image if target.outlier_points_in_image is not None else np.zeros((0, 2))
+            )
+            self.rec.log(f"{path}/inliers", rr.Points2D(to_rerun(inliers), radii=[2.5], colors=[(60, 220, 90)]))
+            self.rec.log(f"{path}/outliers", rr.Points2D(to_rerun(outliers), radii=[3.5], colors=[(255, 40, 40)]))
 
     def _choose_anchor(self, result: FrameResult) -> None:
         if self.anchor is not None or not result.targets:
@@ -245,7 +263,7 @@ class RerunRecorder:
             else rr.ViewCoordinates.RIGHT_HAND_Y_UP
         )
         self.rec.log("world", up, static=True)
-        self._log_static_target(self.anchor, anchor.length_m, is_anchor=True)
+        self._log_static_target(self.anchor, anchor, is_anchor=True)
         self._static_targets.add(self.anchor)
         log.info("rerun 3D view anchored on %s", self.anchor)
 
@@ -258,6 +276,8 @@ class RerunRecorder:
                 rec.log(f"metrics/reproj_px/{part}", rr.Scalars(target.reproj_px))
             if math.isfinite(target.ambiguity):
                 rec.log(f"metrics/ambiguity/{part}", rr.Scalars(target.ambiguity))
+            if name.startswith("board:") and target.measured:
+                rec.log(f"metrics/inliers/{part}", rr.Scalars(float(target.inliers)))
             if math.isfinite(target.evidence_px):
                 rec.log(f"metrics/flip_evidence_px/{part}", rr.Scalars(target.evidence_px))
             previous_state = self._states.get(name)
@@ -291,7 +311,7 @@ class RerunRecorder:
             if name == self.anchor:
                 continue
             if name not in self._static_targets:
-                self._log_static_target(name, target.length_m, is_anchor=False)
+                self._log_static_target(name, target, is_anchor=False)
                 self._static_targets.add(name)
             world_from_target = world_from_camera.compose(target.pose)
             rec.log(
@@ -309,14 +329,10 @@ class RerunRecorder:
                     self.rec.log(path, rr.Clear(recursive=False))
                     continue
                 world_from_branch = world_from_camera.compose(pose)
-                square = world_from_branch.apply(
-                    np.vstack(
-                        [marker_corners_in_marker(target.length_m), marker_corners_in_marker(target.length_m)[:1]]
-                    )
-                )
+                squares = [world_from_branch.apply(square) for square in _closed_squares(target)]
                 normal = world_from_branch.apply(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, target.length_m]]))
                 colour = (90, 200, 255, 90) if branch == 0 else (255, 140, 60, 90)
-                self.rec.log(path, rr.LineStrips3D([square, normal], colors=[colour], radii=[target.length_m / 120]))
+                self.rec.log(path, rr.LineStrips3D([*squares, normal], colors=[colour], radii=[target.length_m / 120]))
 
     def log_message(self, text: str, level: str = "INFO") -> None:
         self.rec.log("log", rr.TextLog(text, level=level))
@@ -330,3 +346,11 @@ class RerunRecorder:
             self.rec.flush(timeout_sec=timeout_s)
         finally:
             self.rec.disconnect()
+
+
+def _closed_squares(target: TargetResult) -> list[np.ndarray]:
+    """The target's marker squares as closed 3D line strips in its own frame."""
+    quads = target.outline_in_target
+    if quads is None:
+        quads = marker_corners_in_marker(target.length_m)[None]
+    return [np.vstack([quad, quad[:1]]) for quad in np.asarray(quads, np.float64).reshape(-1, 4, 3)]
