@@ -216,7 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
         "stability: raw per-frame IPPE vs. the tracker over a grid of synthetic scenarios "
         "(flips, errors, jitter, lag, time to commit), written as markdown and JSON.",
     )
-    bench.add_argument("name", choices=("stability",), help="which benchmark")
+    bench.add_argument(
+        "name", choices=("stability", "boards"), help="stability: raw vs tracker; boards: lone marker vs a board"
+    )
     bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
     bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
     bench.add_argument(
@@ -507,18 +509,22 @@ def cmd_live(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import write_stability_report
+    from .bench import write_board_report, write_stability_report
     from .config import load_config
 
     config = load_config(args.config)
-    command = "ar-anchor bench stability" + (" --quick" if args.quick else "")
+    command = f"ar-anchor bench {args.name}" + (" --quick" if args.quick else "")
 
     def progress(i: int, total: int, name: str) -> None:
         if not args.quiet:
             print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
 
-    write_stability_report(args.out, quick=args.quick, config=config, progress=progress, command=command)
-    print(f"results: {args.out / 'stability.md'} and {args.out / 'stability.json'}")
+    if args.name == "boards":
+        frames = 60 if args.quick else 150
+        write_board_report(args.out, config=config, frames=frames, progress=progress, command=command)
+    else:
+        write_stability_report(args.out, quick=args.quick, config=config, progress=progress, command=command)
+    print(f"results: {args.out / (args.name + '.md')} and {args.out / (args.name + '.json')}")
     return EXIT_OK
 
 
