@@ -285,6 +285,14 @@ class TrackerConfig:
                 dictionary_id(dictionary)
             except ConfigError as err:
                 raise ConfigError(f"--dictionary: {err}") from None
+            size = dictionary_size(dictionary)
+            for board in config.boards:
+                too_big = [i for i in board.marker_ids if i >= size]
+                if too_big:
+                    raise ConfigError(
+                        f"--dictionary: {dictionary} has {size} markers, but board '{board.name}' "
+                        f"({config.source}) uses ids {too_big[:5]}"
+                    )
             config = dataclasses.replace(
                 config,
                 detector=dataclasses.replace(config.detector, dictionary=dictionary),

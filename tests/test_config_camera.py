@@ -18,6 +18,7 @@ from ar_anchor.config import (
     RecordingConfig,
     TrackerConfig,
     load_config,
+    parse_config,
 )
 from ar_anchor.errors import CameraError, ConfigError, InputError
 
@@ -436,3 +437,10 @@ def test_camera_matrix_as_a_plain_list_of_nine_is_read_row_major(tmp_path):
     np.testing.assert_array_equal(
         CameraModel.from_yaml(path).camera_matrix, CameraModel.from_yaml(tagged).camera_matrix
     )
+
+
+def test_dictionary_override_checks_board_ids():
+    config = parse_config({"boards": [{"name": "far", "kind": "grid", "cols": 2, "rows": 2, "first_id": 40}]}, "x.toml")
+    assert config.with_overrides(dictionary="DICT_5X5_100").boards[0].dictionary == "DICT_5X5_100"
+    with pytest.raises(ConfigError, match=r"--dictionary: DICT_APRILTAG_16h5 has 30 markers, but board 'far'"):
+        config.with_overrides(dictionary="DICT_APRILTAG_16h5")
