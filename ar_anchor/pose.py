@@ -278,9 +278,12 @@ class BoardSolver:
         self.name: str = board.name
         self.corners = board.corners_in_board()
         self.planar: bool = board.planar
+        self.marker_length_m = min(board.marker_length_of(i) for i in self.corners)  # for drawing
+        self.outline = np.stack([self.corners[i] for i in board.marker_ids])  # (K, 4, 3) marker squares
         self.inlier_px = inlier_px
         self.cv_board = board.cv_board()
         self.charuco = None
+        self._charuco_detectors: dict[tuple[bytes, bytes | None], Any] = {}
         if board.kind == "charuco":
             self.charuco = self.cv_board
             self.chessboard = np.asarray(self.cv_board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
@@ -407,11 +410,14 @@ class BoardSolver:
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """ChArUco chessboard corners interpolated from the inlier markers (calibrated, so the
         interpolation follows the lens), with their board coordinates."""
-        params = cv2.aruco.CharucoParameters()
-        params.cameraMatrix = camera.camera_matrix
-        if camera.dist_or_none is not None:
-            params.distCoeffs = camera.dist_or_none
-        detector = cv2.aruco.CharucoDetector(self.charuco, params)
+        key = (camera.camera_matrix.tobytes(), None if camera.dist_or_none is None else camera.dist_or_none.tobytes())
+        detector = self._charuco_detectors.get(key)
+        if detector is None:  # one per calibration, not per frame
+            params = cv2.aruco.CharucoParameters()
+            params.cameraMatrix = camera.camera_matrix
+            if camera.dist_or_none is not None:
+                params.distCoeffs = camera.dist_or_none
+            detector = self._charuco_detectors[key] = cv2.aruco.CharucoDetector(self.charuco, params)
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         try:
             chess_corners, chess_ids, _, _ = detector.detectBoard(

@@ -120,8 +120,7 @@ class Tracker:
         """The target's marker squares (K, 4, 3) in its own frame (for drawing it in 3D)."""
         kind, _, ident = target.partition(":")
         if kind == "board":
-            corners = next(s.corners for s in self.board_solvers if s.name == ident)
-            return np.stack(list(corners.values()))
+            return next(s.outline for s in self.board_solvers if s.name == ident)
         return marker_corners_in_marker(self.config.marker_length(int(ident)))[None]
 
     def process(self, frame: Frame) -> FrameResult:
@@ -202,8 +201,7 @@ class Tracker:
         if name.startswith("marker:"):
             length = self.config.marker_length(int(name.split(":")[1]))
         else:
-            solver = next(s for s in self.board_solvers if f"board:{s.name}" == name)
-            length = min(solver.board.marker_length_of(i) for i in solver.corners)
+            length = next(s.marker_length_m for s in self.board_solvers if f"board:{s.name}" == name)
         if solved is None:
             return TargetResult(
                 target=name,
