@@ -157,12 +157,17 @@ def test_trajectories_keep_the_scene_in_front_of_the_camera(kind, camera):
         assert near == pytest.approx(0.4) and far == pytest.approx(2.0)
 
 
-def test_distorted_cameras_are_refused_by_the_renderer():
+@pytest.mark.parametrize("k1, renders", [(0.1, True), (-0.15, True), (-0.4, False), (-3.0, False)])
+def test_distorted_cameras_render_unless_the_model_folds_over(k1, renders):
     from ar_anchor.camera import CameraModel
     from ar_anchor.errors import SourceError
 
     camera = CameraModel(
-        np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.array([0.1, 0, 0, 0, 0]), 640, 480
+        np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.array([k1, 0, 0, 0, 0]), 640, 480
     )
-    with pytest.raises(SourceError, match="distortion"):
-        SyntheticScene(camera=camera)
+    scene = SyntheticScene(camera=camera, markers=(PlacedMarker(3, LENGTH, Pose.identity()),), frames=1)
+    if renders:
+        assert SyntheticSource(scene).frame(0).image.shape == (480, 640, 3)
+    else:  # r (1 + k1 r^2) peaks below the image corner's radius (0.8): no inverse exists there
+        with pytest.raises(SourceError, match="distortion"):
+            SyntheticSource(scene)

@@ -19,7 +19,10 @@ lone marker's frame is its centre, x right, y up, z toward the viewer (IPPE_SQUA
 board's frame is OpenCV's ``GridBoard.getObjPoints()`` frame (top-left of the first marker,
 x right, y down, z into the board).
 
-Only ideal pinhole cameras are rendered for now: a camera with distortion is refused.
+Lens distortion: a camera with distortion coefficients is rendered as its ideal pinhole camera on
+a canvas large enough to hold the undistorted view, then resampled (bilinear) at each output
+pixel's undistorted position (``undistortPoints`` iterated to convergence), so straight edges come
+out curved exactly as ``projectPoints`` with the same coefficients predicts.
 """
 
 from __future__ import annotations
@@ -172,8 +175,6 @@ class SyntheticScene:
         return any(start <= index < stop for start, stop in self.hidden)
 
     def __post_init__(self) -> None:
-        if self.camera.has_distortion:
-            raise SourceError("synthetic source: only pinhole cameras (no distortion) can be rendered")
         if self.frames < 0:
             raise ValueError(f"frames must be >= 0, got {self.frames}")
         if not self.fps > 0:
@@ -316,10 +317,45 @@ def _clutter_texture(rng: np.random.Generator, size: int = 1024) -> np.ndarray:
     return cv2.GaussianBlur(image, (0, 0), 1.2)
 
 
+def _pinhole_canvas(camera: CameraModel) -> tuple[CameraModel, tuple[np.ndarray, np.ndarray] | None]:
+    """The pinhole camera to render with, and for a distorted camera the maps from each output pixel
+    to its position on that pinhole canvas (``None``: render directly)."""
+    if not camera.has_distortion:
+        return camera, None
+    width, height = camera.size
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+    k = camera.camera_matrix
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-9)
+    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4
+        ideal = cv2.undistortPointsIter(pixels, k, camera.dist_coeffs, None, k, criteria)
+    else:  # OpenCV 5 folded the criteria into undistortPoints
+        ideal = cv2.undistortPoints(pixels, k, camera.dist_coeffs, R=None, P=k, criteria=criteria)
+    # the inversion must round-trip: a model that folds over (e.g. a strongly negative k1 at the
+    # image's corners) has pixels no ideal point projects to
+    rays = cv2.undistortPoints(ideal, k, np.zeros(5)).reshape(-1, 2)
+    back = cv2.projectPoints(
+        np.column_stack([rays, np.ones(len(rays))]), np.zeros(3), np.zeros(3), k, camera.dist_coeffs
+    )[0]
+    ideal = ideal.reshape(height, width, 2)
+    if not (np.all(np.isfinite(back)) and np.abs(back.reshape(-1, 2) - pixels.reshape(-1, 2)).max() < 0.01):
+        raise SourceError("synthetic source: the camera's distortion model cannot be inverted over the whole image")
+    x0, y0 = np.floor(ideal.reshape(-1, 2).min(axis=0)) - 2
+    x1, y1 = np.ceil(ideal.reshape(-1, 2).max(axis=0)) + 2
+    if (x1 - x0) * (y1 - y0) > 9 * width * height:
+        raise SourceError("synthetic source: the camera's distortion is too strong to render (view > 9x the image)")
+    shifted = k.copy()
+    shifted[0, 2] -= x0
+    shifted[1, 2] -= y0
+    pinhole = CameraModel(shifted, np.zeros(0), int(x1 - x0) + 1, int(y1 - y0) + 1)
+    maps = ((ideal[..., 0] - x0).astype(np.float32), (ideal[..., 1] - y0).astype(np.float32))
+    return pinhole, maps
+
+
 class _Renderer:
     def __init__(self, scene: SyntheticScene) -> None:
         self.scene = scene
-        self.camera = scene.camera
+        self.camera, self._undistort_maps = _pinhole_canvas(scene.camera)
         rng = np.random.default_rng([scene.seed, 0xC1077E7])
         self.wall_texture = _clutter_texture(rng) if scene.clutter else np.full((8, 8, 3), 128, np.uint8)
         wall_m = 2.0
@@ -350,12 +386,14 @@ class _Renderer:
     def render(self, camera_from_world: Pose, *, targets: bool = True) -> np.ndarray:
         """Noise-free BGR image of the scene seen from ``camera_from_world``."""
         canvas = self._render_wall(camera_from_world).astype(np.float32)
-        if not targets:
-            return canvas
-        depth = [float(camera_from_world.apply(centre[None])[0, 2]) for centre, _ in self.groups]
-        for order in np.argsort(depth)[::-1]:
-            for quad in self.groups[order][1]:
-                self._composite(canvas, quad, camera_from_world)
+        if targets:
+            depth = [float(camera_from_world.apply(centre[None])[0, 2]) for centre, _ in self.groups]
+            for order in np.argsort(depth)[::-1]:
+                for quad in self.groups[order][1]:
+                    self._composite(canvas, quad, camera_from_world)
+        if self._undistort_maps is not None:
+            map_x, map_y = self._undistort_maps
+            canvas = cv2.remap(canvas, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return canvas
 
     def _homography(self, camera_from_plane: Pose, plane_from_texture: np.ndarray) -> np.ndarray:
