@@ -42,7 +42,9 @@ __all__ = [
     "load_config",
 ]
 
+# OpenCV's refinement per option; "edges" is ours (ar_anchor.corners), run on unrefined corners
 CORNER_REFINEMENTS = {
+    "edges": cv2.aruco.CORNER_REFINE_NONE,
     "none": cv2.aruco.CORNER_REFINE_NONE,
     "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
     "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
@@ -77,9 +79,12 @@ def dictionary_size(name: str) -> int:
 @dataclass(frozen=True)
 class DetectorConfig:
     dictionary: str = "DICT_4X4_50"
-    corner_refinement: str = "subpix"
-    refinement_window: float = 0.3  # sub-pixel window, in marker cells (OpenCV's relativeCornerRefinmentWinSize)
+    corner_refinement: str = "edges"  # edges (lines fitted to the marker's sides) | none | subpix | contour | apriltag
+    refinement_window: float = 0.3  # subpix only: window in marker cells (OpenCV's relativeCornerRefinmentWinSize)
     min_perimeter_rate: float = 0.03  # smallest marker perimeter, as a fraction of the image's larger side
+    # bits are read from the middle of each cell, ignoring this fraction of the cell on every side
+    # (OpenCV's perspectiveRemoveIgnoredMarginPerCell, default 0.13); see Detector for the measurements
+    cell_margin: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -471,6 +476,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     )
     window = det.take("refinement_window", float, defaults.detector.refinement_window, _in_range(0.05, 10.0))
     perimeter = det.take("min_perimeter_rate", float, defaults.detector.min_perimeter_rate, _in_range(0.001, 4.0))
+    cell_margin = det.take("cell_margin", float, defaults.detector.cell_margin, _in_range(0.0, 0.45))
     det.done()
     limit = dictionary_size(dictionary)
 
@@ -572,6 +578,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
             corner_refinement=refinement,
             refinement_window=window,
             min_perimeter_rate=perimeter,
+            cell_margin=cell_margin,
         ),
         markers=MarkersConfig(length_m=length_m, lengths_m=lengths, ids=ids),
         boards=tuple(boards),

@@ -8,7 +8,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .camera import CameraModel
 from .config import CORNER_REFINEMENTS, DetectorConfig, dictionary_id
+from .corners import refine_corners_by_edges
 
 __all__ = ["Detector", "MarkerDetections"]
 
@@ -45,32 +47,49 @@ class MarkerDetections:
 
 
 class Detector:
-    """Find markers of one dictionary, with sub-pixel corner refinement by default."""
+    """Find markers of one dictionary, with sub-pixel corners fitted to the markers' edges by default
+    (:mod:`ar_anchor.corners`; ``corner_refinement`` selects OpenCV's methods instead)."""
 
     def __init__(self, config: DetectorConfig) -> None:
         self.config = config
         self.dictionary = cv2.aruco.getPredefinedDictionary(dictionary_id(config.dictionary))
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = CORNER_REFINEMENTS[config.corner_refinement]
-        # sub-pixel window relative to a marker cell (OpenCV's default 0.3). On far markers the corners
-        # keep a bias of a few tenths of a pixel either way; measured on the stability benchmark, a
-        # larger window helps some geometries and hurts others, so the default stays OpenCV's
+        # subpix: window relative to a marker cell (OpenCV's default 0.3). On far markers its corners
+        # keep a bias of a few tenths of a pixel whatever the window, hence the "edges" default
+        self._edges = config.corner_refinement == "edges"
+        self._cells = int(self.dictionary.markerSize) + 2
         if hasattr(params, "relativeCornerRefinmentWinSize"):
             params.relativeCornerRefinmentWinSize = config.refinement_window
         params.minMarkerPerimeterRate = config.min_perimeter_rate
+        # Reading the bits of far markers (cells of about 3 px): OpenCV's defaults (margin 0.13, 4 px per
+        # cell) lose a 20 px 4x4 marker entirely at some sub-pixel phases (bench boards at 3 m, 4.5 m).
+        # Margin 0.25 with 6 px per cell reads them at every distance of that bench and still finds all
+        # 24 markers of the real aruco_testdata board photo and the same markers in its video.
+        params.perspectiveRemoveIgnoredMarginPerCell = config.cell_margin
+        params.perspectiveRemovePixelPerCell = 6
         self.parameters = params
         self._detector = cv2.aruco.ArucoDetector(self.dictionary, params)
         self._warned_duplicates: set[int] = set()
         self.rejected: tuple[np.ndarray, ...] = ()  # the last image's rejected candidates
 
-    def detect(self, image: np.ndarray) -> MarkerDetections:
-        """Detect markers in a BGR or grey image. Markers whose id appears twice are dropped (ambiguous)."""
+    def detect(self, image: np.ndarray, camera: CameraModel | None = None) -> MarkerDetections:
+        """Detect markers in a BGR or grey image. Markers whose id appears twice are dropped (ambiguous).
+
+        ``camera`` (optional) lets the edge refinement fit the markers' sides in the undistorted image.
+        """
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         corners, ids, rejected = self._detector.detectMarkers(grey)
         self.rejected = rejected
         if ids is None or len(ids) == 0:
             return MarkerDetections.empty()
-        return self._clean(ids, corners)
+        detections = self._clean(ids, corners)
+        if self._edges:
+            k, dist = (None, None) if camera is None else (camera.camera_matrix, camera.dist_or_none)
+            detections = MarkerDetections(
+                detections.ids, refine_corners_by_edges(grey, detections.corners, self._cells, k, dist)
+            )
+        return detections
 
     def recover(
         self,
@@ -99,7 +118,13 @@ class Detector:
         self.rejected = rejected
         if ids is None or len(ids) <= len(detections):
             return detections
-        return self._clean(ids, corners)
+        recovered = self._clean(ids, corners)
+        if self._edges:
+            new = ~np.isin(recovered.ids, detections.ids)
+            refined = recovered.corners.copy()
+            refined[new] = refine_corners_by_edges(grey, refined[new], self._cells, camera_matrix, dist)
+            recovered = MarkerDetections(recovered.ids, refined)
+        return recovered
 
     def _clean(self, ids: np.ndarray, corners: np.ndarray) -> MarkerDetections:
         ids = np.asarray(ids).reshape(-1)

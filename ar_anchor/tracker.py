@@ -126,7 +126,7 @@ class Tracker:
     def process(self, frame: Frame) -> FrameResult:
         camera = self.camera_for(frame.size)
         t0 = time.perf_counter()
-        detections = self.detector.detect(frame.image)
+        detections = self.detector.detect(frame.image, camera)
         if self.config.pose.recover_markers:
             for solver in self.board_solvers:
                 detections = self.detector.recover(

@@ -658,7 +658,7 @@ class _FixedDetections:
         self.inner = detector
         self.frames = iter(frames)
 
-    def detect(self, image: np.ndarray) -> MarkerDetections:
+    def detect(self, image: np.ndarray, camera=None) -> MarkerDetections:
         return next(self.frames)
 
     def recover(self, image, detections, *args, **kwargs) -> MarkerDetections:

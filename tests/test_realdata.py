@@ -59,8 +59,8 @@ def test_aruco_library_board_photo_markers_and_poses(realdata):
             if marker_id in reference
         ]
     )
-    assert np.median(distances) < 0.75
-    assert np.mean(distances < 1.0) >= 0.85
+    assert np.median(distances) < 1.0
+    assert np.mean(distances < 1.5) >= 0.85
     for marker_id, corners in zip(detections.ids.tolist(), detections.corners):
         # every marker of the printed board gets a valid pose through the lens's distortion model
         solved = solve_marker(marker_id, corners, 0.039, camera, max_reproj_px=3.0)
