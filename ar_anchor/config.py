@@ -405,7 +405,8 @@ def _parse_board(bd: _Table, name: str, kind: str, dictionary: str, limit: int, 
             source = "inline"
         bad = [marker_id for marker_id, _ in layout if marker_id >= limit]
         if bad:
-            raise bd.fail("layout", f"marker ids {bad} are outside the dictionary (0..{limit - 1})")
+            key = "markers" if source == "inline" else "layout"
+            raise bd.fail(key, f"marker ids {bad} are outside the dictionary (0..{limit - 1})")
         return BoardConfig(name=name, kind=kind, dictionary=dictionary, layout=layout, layout_source=source)
     if kind == "charuco":
         cols = bd.take("squares_x", int, 5, _in_range(2, 100))

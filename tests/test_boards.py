@@ -273,7 +273,7 @@ BOARD_CONFIG_ERRORS = [
     (
         "custom-inline-id-outside-dictionary",
         _CUSTOM + _INLINE_MARKER.format(id=60),
-        r"\[\[boards\]\] 'cu' \w+: marker ids \[60\] are outside the dictionary \(0\.\.49\)",
+        r"\[\[boards\]\] 'cu' markers: marker ids \[60\] are outside the dictionary \(0\.\.49\)",
     ),
     (
         "charuco-marker-equals-square",
