@@ -92,6 +92,18 @@ def _add_run_options(parser: argparse.ArgumentParser, name: str, *, spawn: bool 
     """--max-frames, --out and (optionally) --spawn, shared by the commands that run the tracker."""
     parser.add_argument("--max-frames", type=_int_at_least(1), default=None, help="stop after N frames")
     parser.add_argument("--out", type=Path, default=None, help=f"output directory (default recordings/{name}-<time>/)")
+    parser.add_argument(
+        "--video-out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="also write the annotated video (overlays drawn) to FILE: .mp4/.mov/.mkv (H.264) or .avi (MJPG)",
+    )
+    parser.add_argument(
+        "--no-overlay",
+        action="store_true",
+        help="do not draw overlays into the recording (faster); --video-out still does",
+    )
     if spawn:
         parser.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
 
@@ -217,7 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
         "(flips, errors, jitter, lag, time to commit), written as markdown and JSON.",
     )
     bench.add_argument(
-        "name", choices=("stability", "boards"), help="stability: raw vs tracker; boards: lone marker vs a board"
+        "name",
+        choices=("stability", "boards", "overlay"),
+        help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles",
     )
     bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
     bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
@@ -330,6 +344,9 @@ def _finish(args: argparse.Namespace, outputs: Any) -> int:
         print(format_summary(outputs.summary))
     files = "poses.csv, summary.json, recording.rrd" + (", raw.mkv" if outputs.raw_video else "")
     print(f"outputs: {outputs.out_dir}/ ({files})")
+    video = outputs.summary.get("video_out")
+    if video:
+        print(f"annotated video: {video['path']} ({video['frames']} frames)")
     status = outputs.summary.get("status")
     return EXIT_OK if status == "completed" else EXIT_FAILURE
 
@@ -362,6 +379,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         spawn=args.spawn,
         recording_name="ar_anchor demo",
+        video_out=args.video_out,
+        overlays=not args.no_overlay,
         extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory},
     )
     progress = _Progress(not args.quiet, "demo")
@@ -402,6 +421,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
             spawn=args.spawn,
             recording_name=f"ar_anchor replay {args.source}",
             video_asset=video,
+            video_out=args.video_out,
+            overlays=not args.no_overlay,
+            record_fps=getattr(source, "fps", None) or 30.0,
             extra_summary={"command": "replay", "source": str(args.source)},
         )
         progress = _Progress(not args.quiet, "replay")
@@ -478,6 +500,8 @@ def cmd_live(args: argparse.Namespace) -> int:
             recording_name=f"ar_anchor live {args.device}",
             record_raw=args.record,
             record_fps=fps,
+            video_out=args.video_out,
+            overlays=not args.no_overlay,
             extra_summary={"command": "live", "device": str(args.device), "granted": getattr(grabber, "granted", {})},
         )
         if args.record:
@@ -509,7 +533,7 @@ def cmd_live(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import write_board_report, write_stability_report
+    from .bench import write_board_report, write_overlay_report, write_stability_report
     from .config import load_config
 
     config = load_config(args.config)
@@ -519,7 +543,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
 
-    if args.name == "boards":
+    if args.name == "overlay":
+        write_overlay_report(args.out, frames=30 if args.quick else 60, progress=progress, command=command)
+    elif args.name == "boards":
         frames = 60 if args.quick else 150
         write_board_report(args.out, config=config, frames=frames, progress=progress, command=command)
     else:

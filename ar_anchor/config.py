@@ -35,6 +35,7 @@ __all__ = [
     "DetectorConfig",
     "FilterConfig",
     "MarkersConfig",
+    "OverlayConfig",
     "PoseConfig",
     "RecordingConfig",
     "TrackerConfig",
@@ -245,6 +246,45 @@ class RecordingConfig:
     jpeg_quality: int = 80
 
 
+OVERLAY_KINDS = ("cube", "mesh", "axes")
+
+
+@dataclass(frozen=True)
+class OverlayConfig:
+    """One virtual object drawn on a target (``[[overlays]]``; see :mod:`ar_anchor.overlay`).
+
+    ``target``: ``marker:<id>``, ``board:<name>``, ``marker:*`` (every marker that is not part of a
+    board), ``board:*`` or ``*``; a target named exactly takes only its own overlays. Placement is in
+    the target's anchor frame: its centre, x right, y up, z out of the marker or board.
+    """
+
+    target: str = "marker:*"
+    kind: str = "cube"
+    size_m: float = 0.0  # cube side / axis length / mesh's largest extent; 0: the target's size
+    path: str = ""  # mesh: a file (OBJ, PLY, STL, GLB, OFF; relative to the config file) or "builtin:pin"
+    scale: float = 1.0  # mesh: file units -> metres (when size_m is 0)
+    offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # x, y, z Euler angles (extrinsic, in order)
+    colour: tuple[int, int, int] = (70, 140, 240)  # RGB; a mesh's own colours win unless colour is set
+    colour_set: bool = False  # colour was given explicitly
+    opacity: float = 1.0
+
+    def matches(self, target: str, board_member: bool) -> bool:
+        if self.target in ("*", target):
+            return True
+        kind = target.partition(":")[0]
+        if self.target == "marker:*":
+            return kind == "marker" and not board_member
+        return self.target == f"{kind}:*"
+
+
+def _default_overlays() -> tuple[OverlayConfig, ...]:
+    return (
+        OverlayConfig(target="marker:*", kind="cube"),
+        OverlayConfig(target="board:*", kind="mesh", path="builtin:pin"),
+    )
+
+
 def _default_boards() -> tuple[BoardConfig, ...]:
     return (BoardConfig(name="desk", cols=2, rows=2, marker_length_m=0.04, separation_m=0.02, first_id=10),)
 
@@ -257,7 +297,17 @@ class TrackerConfig:
     pose: PoseConfig = field(default_factory=PoseConfig)
     filter: FilterConfig = field(default_factory=FilterConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
+    overlays: tuple[OverlayConfig, ...] = field(default_factory=_default_overlays)
     source: str = "<defaults>"
+
+    def overlays_for(self, target: str) -> tuple[OverlayConfig, ...]:
+        """The overlays drawn on ``target``: those naming it exactly, else the matching patterns."""
+        exact = tuple(o for o in self.overlays if o.target == target)
+        if exact:
+            return exact
+        kind, _, ident = target.partition(":")
+        member = kind == "marker" and ident.isdigit() and self.board_of(int(ident)) is not None
+        return tuple(o for o in self.overlays if o.matches(target, member))
 
     def board_of(self, marker_id: int) -> BoardConfig | None:
         for board in self.boards:
@@ -571,6 +621,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         jpeg_quality=rc.take("jpeg_quality", int, defaults.recording.jpeg_quality, _in_range(1, 100)),
     )
     rc.done()
+    overlays = _parse_overlays(root, path, defaults)
     root.done()
 
     return TrackerConfig(
@@ -586,8 +637,75 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         pose=pose,
         filter=filter_config,
         recording=recording,
+        overlays=overlays,
         source=path,
     )
+
+
+def _parse_overlays(root: _Table, path: str, defaults: TrackerConfig) -> tuple[OverlayConfig, ...]:
+    """``[[overlays]]``; absent: the defaults (a cube on every lone marker, the pin on every board)."""
+    if "overlays" not in root.data:
+        return defaults.overlays
+    raw_overlays = root.data.pop("overlays")
+    if not isinstance(raw_overlays, list):
+        raise ConfigError(f"{path}: overlays must be an array of tables ([[overlays]])")
+    base = Path(path).parent if path and not path.startswith("<") else Path.cwd()
+    result = []
+    for index, raw in enumerate(raw_overlays):
+        ov = _Table(raw, f"[[overlays]] #{index + 1}", path)
+        target = ov.take("target", str, "marker:*", _target_problem)
+        kind = ov.take("kind", str, "cube", lambda v: None if v in OVERLAY_KINDS else f"must be one of {OVERLAY_KINDS}")
+        mesh_path = ov.take("path", str, "")
+        if kind == "mesh" and not mesh_path:
+            raise ov.fail("path", 'a mesh overlay needs a model file (or "builtin:pin")')
+        if kind != "mesh" and mesh_path:
+            raise ov.fail("path", f"only mesh overlays take a model file (this one is {kind!r})")
+        if mesh_path and not mesh_path.startswith("builtin:"):
+            mesh_path = str(base / mesh_path)
+        elif mesh_path and mesh_path not in ("builtin:pin",):
+            raise ov.fail("path", f"unknown built-in model {mesh_path!r} (builtin:pin)")
+        colour_set = "colour" in ov.data
+        overlay = OverlayConfig(
+            target=target,
+            kind=kind,
+            size_m=ov.take("size_m", float, 0.0, _non_negative),
+            path=mesh_path,
+            scale=ov.take("scale", float, 1.0, _positive),
+            offset_m=_take_vector(ov, "offset_m", 3, (0.0, 0.0, 0.0), 100.0),
+            rotation_deg=_take_vector(ov, "rotation_deg", 3, (0.0, 0.0, 0.0), 360.0),
+            colour=tuple(int(c) for c in _take_vector(ov, "colour", 3, (70, 140, 240), 255.0, minimum=0.0)),
+            colour_set=colour_set,
+            opacity=ov.take("opacity", float, 1.0, _in_range(0.0, 1.0)),
+        )
+        ov.done()
+        result.append(overlay)
+    return tuple(result)
+
+
+def _target_problem(value: str) -> str | None:
+    kind, sep, ident = value.partition(":")
+    if value == "*" or (sep and kind in ("marker", "board") and ident == "*"):
+        return None
+    if sep and kind == "marker" and ident.isdigit():
+        return None
+    if sep and kind == "board" and ident:
+        return None
+    return 'must be "marker:<id>", "board:<name>", "marker:*", "board:*" or "*"'
+
+
+def _take_vector(
+    table: _Table, key: str, size: int, default: tuple[float, ...], limit: float, minimum: float | None = None
+) -> tuple[float, ...]:
+    if key not in table.data:
+        return default
+    value = table.data.pop(key)
+    numbers = isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    if not numbers or len(value) != size:
+        raise table.fail(key, f"must be a list of {size} numbers, got {value!r}")
+    low = -limit if minimum is None else minimum
+    if not all(math.isfinite(v) and low <= v <= limit for v in value):
+        raise table.fail(key, f"values must be finite and in [{low:g}, {limit:g}], got {value!r}")
+    return tuple(float(v) for v in value)
 
 
 def load_config(path: str | os.PathLike[str] | None = None) -> TrackerConfig:

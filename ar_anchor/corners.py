@@ -47,16 +47,19 @@ def refine_corners_by_edges(
     Parameters
     ----------
     grey : (H, W) uint8 or float image.
-    corners : (N, 4, 2) detected corners, clockwise in the image (OpenCV's TL, TR, BR, BL).
+    corners : (N, 4, 2) detected corners, clockwise in the image (OpenCV's TL, TR, BR, BL); any
+        convex dark polygon on a light background works the same, as (N, K, 2) with K >= 3.
     cells : marker cells per side, border included (``dictionary.markerSize + 2``).
     camera_matrix, dist : the camera's model; with a non-zero ``dist``, lines are fitted in the
         undistorted image.
 
     Returns
     -------
-    (N, 4, 2) float64 corners; a marker whose refinement fails keeps its input corners.
+    (N, K, 2) float64 corners; a marker whose refinement fails keeps its input corners.
     """
-    corners = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+    corners = np.asarray(corners, dtype=np.float64)
+    sides = corners.shape[-2] if corners.ndim == 3 and corners.shape[-2] >= 3 else 4
+    corners = corners.reshape(-1, sides, 2)
     out = corners.copy()
     profiles = _Profiles.of(corners, cells)
     if profiles is None:
@@ -71,20 +74,20 @@ def refine_corners_by_edges(
         k_matrix = dist = None
     for m in np.unique(profiles.marker):
         lines = []
-        for k in range(4):
+        for k in range(sides):
             side = (profiles.marker == m) & (profiles.side == k) & keep
             if side.sum() < _MIN_POINTS:
                 break
             lines.append(_fit_line(points[side]))
-        if len(lines) < 4:
+        if len(lines) < sides:
             continue
-        refined = np.array([_intersect(lines[k - 1], lines[k]) for k in range(4)])  # corner k: sides k-1 and k
+        refined = np.array([_intersect(lines[k - 1], lines[k]) for k in range(sides)])  # corner k: sides k-1, k
         if not np.all(np.isfinite(refined)):
             continue
         if k_matrix is not None:
             rays = cv2.undistortPoints(refined.reshape(-1, 1, 2), k_matrix, np.zeros(5)).reshape(-1, 2)
-            rays3 = np.column_stack([rays, np.ones(4)])
-            refined = cv2.projectPoints(rays3, np.zeros(3), np.zeros(3), k_matrix, dist)[0].reshape(4, 2)
+            rays3 = np.column_stack([rays, np.ones(sides)])
+            refined = cv2.projectPoints(rays3, np.zeros(3), np.zeros(3), k_matrix, dist)[0].reshape(sides, 2)
         limit = max(1.5, 0.5 * profiles.cell[m])
         if np.all(np.isfinite(refined)) and np.linalg.norm(refined - corners[m], axis=1).max() <= limit:
             out[m] = refined
@@ -115,7 +118,7 @@ class _Profiles:
             outward = np.column_stack([along[:, 1], -along[:, 0]])
             width = float(np.clip(_HALF_WIDTH_CELLS * cell[m], *_HALF_WIDTH_PX))
             margin = 0.5 * cell[m] + 1.0  # keep away from the corners, where the neighbouring side's edge is
-            for k in range(4):
+            for k in range(len(quad)):
                 span = lengths[k] - 2 * margin
                 count = int(min(_MAX_PER_SIDE, np.floor(span / _STEP_ALONG) + 1)) if span > 0 else 0
                 if count < _MIN_POINTS:
@@ -154,7 +157,7 @@ class _Profiles:
             offsets = offsets + np.where(total > 1e-6, shift, 0.0)
         keep = (total > 1e-6) & (np.abs(offsets) < self.half)
         # a profile with a weak edge (an occluded or washed-out stretch of the side) is no evidence
-        groups = self.marker * 4 + self.side
+        groups = self.marker * 64 + self.side
         for group in np.unique(groups):
             members = groups == group
             good = members & keep

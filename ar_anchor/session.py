@@ -18,10 +18,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import OutputError
+from .errors import InputError, OutputError
 from .outputs import PosesCsvWriter, RawVideoWriter, RunSummary, write_json_atomic
+from .overlay import OverlayRenderer
 from .sources.base import FrameSource
 from .tracker import FrameResult, Tracker
+from .video_out import SUPPORTED_EXTENSIONS, AnnotatedVideoWriter
 from .viz import RerunRecorder
 
 __all__ = ["RunOptions", "RunOutputs", "run_session"]
@@ -79,6 +81,8 @@ class RunOptions:
     record_raw: bool = False  # also write raw.mkv (lossless) + timestamps
     record_fps: float = 30.0
     video_asset: Path | None = None  # reference this MP4 in the recording instead of JPEG frames
+    video_out: Path | None = None  # write the annotated (overlay) video here
+    overlays: bool = True  # draw the config's overlays (rerun's camera/overlay and --video-out)
     extra_summary: dict[str, Any] = field(default_factory=dict)
 
 
@@ -107,6 +111,12 @@ def run_session(
     ``summary_extras()`` is merged into ``summary.json`` when the run ends, however it ends.
     """
     options = options or RunOptions()
+    # models (mesh files) are read before any output exists: a bad model is a clean input error
+    renderer = OverlayRenderer(tracker.config, tracker.camera) if options.overlays or options.video_out else None
+    if options.video_out is not None and options.video_out.suffix.lower() not in SUPPORTED_EXTENSIONS:
+        raise InputError(
+            f"--video-out {options.video_out}: unsupported extension (use {', '.join(SUPPORTED_EXTENSIONS)})"
+        )
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -119,6 +129,7 @@ def run_session(
         total = options.max_frames if total is None else min(total, options.max_frames)
 
     summary = RunSummary()
+    extra_counts: dict[str, Any] = {}
     status = "incomplete"
     data: dict[str, Any] = {}
     image_logging = "none"
@@ -134,6 +145,8 @@ def run_session(
                 recording_name=options.recording_name,
             )
             stack.callback(recorder.close)
+            if renderer is not None:
+                recorder.overlay_models = renderer.models_for
             image_logging = "jpeg"
             if options.video_asset is not None and recorder.use_video(options.video_asset, source.frame_count):
                 image_logging = "video_asset"
@@ -142,15 +155,25 @@ def run_session(
             if raw_video is not None:
                 raw_writer = RawVideoWriter(raw_video, fps=options.record_fps)
                 stack.callback(raw_writer.close)
+            video_writer = None
+            if options.video_out is not None:
+                video_writer = AnnotatedVideoWriter(options.video_out, fps=options.record_fps)
+                stack.callback(video_writer.close)
+                stack.callback(lambda: extra_counts.update(video_frames=video_writer.frames))
             guard = stack.enter_context(_InterruptGuard())
             for frame in source if options.max_frames != 0 else ():
                 result = tracker.process(frame)
                 truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
+                annotated = None
+                if renderer is not None and (video_writer is not None or recorder.wants_image(frame)):
+                    annotated = renderer.annotate(frame.image, result)
                 with guard.critical():
                     if raw_writer is not None:
                         raw_writer.write(frame.image, frame.index, frame.timestamp_ns)
+                    if video_writer is not None:
+                        video_writer.write(annotated)
                     csv_writer.write(result)
-                    recorder.log_frame(frame, result)
+                    recorder.log_frame(frame, result, annotated)
                     summary.add(result, truth)
                 if progress is not None:
                     progress(summary.frames, total, result)
@@ -166,6 +189,8 @@ def run_session(
     finally:
         wall = time.perf_counter() - start
         extras = dict(options.extra_summary)
+        if options.video_out is not None:
+            extras["video_out"] = {"path": str(options.video_out), "frames": extra_counts.get("video_frames", 0)}
         if summary_extras is not None:
             extras.update(summary_extras())
         data = summary.as_dict(wall, status=status, image_logging=image_logging, **extras)

@@ -28,8 +28,9 @@ import logging
 import math
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -49,6 +50,7 @@ log = logging.getLogger(__name__)
 
 _STATE_COLOURS = {"tracked": (40, 220, 80), "ambiguous": (250, 190, 30), "predicted": (120, 120, 255)}
 _FAILED_COLOUR = (255, 60, 60)
+_TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
 
 
 def entity_name(target: str) -> str:
@@ -66,7 +68,10 @@ def default_blueprint() -> rrb.Blueprint:
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
-                rrb.Spatial2DView(origin="camera/image", name="Camera"),
+                rrb.Tabs(
+                    rrb.Spatial2DView(origin="camera/image", name="Camera"),
+                    rrb.Spatial2DView(origin="camera/overlay", name="AR overlay"),
+                ),
                 rrb.Spatial3DView(
                     origin="world",
                     name="3D scene",
@@ -132,6 +137,9 @@ class RerunRecorder:
         self._static_targets: set[str] = set()
         self._video_frame_ns: np.ndarray | None = None
         self._states: dict[str, str] = {}
+        self._trajectory: list[np.ndarray] = []
+        # target -> its overlay models in the target frame (set by the session when it draws overlays)
+        self.overlay_models: Callable[[TargetResult], list[Any]] | None = None
         self._log_static_camera(camera)
 
     def _spawn_viewer(self) -> bool:
@@ -196,9 +204,19 @@ class RerunRecorder:
         )
         self.rec.log(f"{path}/axes", rr.TransformAxes3D(axis_length=length_m * 0.75), static=True)
         self.rec.log(f"{path}/label", rr.Points3D([[0, 0, 0]], labels=[name], radii=[length_m / 40]), static=True)
+        if self.overlay_models is not None:
+            for index, placed in enumerate(self.overlay_models(target)):
+                self.rec.log(f"{path}/overlay/{index}", _mesh3d(placed.model), static=True)
 
     # ------------------------------------------------------------------ per frame
-    def log_frame(self, frame: Frame, result: FrameResult) -> None:
+    def wants_image(self, frame: Frame) -> bool:
+        """Is an image logged for this frame (so an overlay image is worth drawing)?"""
+        every = self.settings.image_every
+        return bool(every) and frame.index % every == 0
+
+    def log_frame(self, frame: Frame, result: FrameResult, overlay: np.ndarray | None = None) -> None:
+        """Log one frame: the image (or its video reference), detections, the 3D scene, metrics, and
+        ``overlay`` (the annotated image, when given) under ``camera/overlay``."""
         rec = self.rec
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("time", duration=frame.timestamp_ns * 1e-9)
@@ -216,6 +234,17 @@ class RerunRecorder:
             ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
             if ok:
                 rec.log("camera/image", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+        if overlay is not None and self.wants_image(frame):
+            image = overlay
+            if self.settings.image_scale != 1.0:
+                size = (
+                    max(1, round(image.shape[1] * self.settings.image_scale)),
+                    max(1, round(image.shape[0] * self.settings.image_scale)),
+                )
+                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
+            if ok:
+                rec.log("camera/overlay", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
         self._log_detections(result, scale)
         self._log_world(result, frame.truth)
         for stage, ms in result.latency_ms.items():
@@ -305,8 +334,15 @@ class RerunRecorder:
             )
         if anchor is None:
             return
-        world_from_camera = anchor.pose.inverse()
+        world_from_camera = anchor.pose.inverse()  # its translation is the camera centre C = -R^T t
         rec.log("world/camera", rr.Transform3D(translation=world_from_camera.tvec, mat3x3=world_from_camera.rotation))
+        self._trajectory.append(world_from_camera.tvec.copy())
+        del self._trajectory[:-_TRAJECTORY_POINTS]
+        if len(self._trajectory) >= 2:
+            rec.log(
+                "world/camera_trajectory",
+                rr.LineStrips3D([np.asarray(self._trajectory)], colors=[(255, 210, 60)], radii=[anchor.length_m / 80]),
+            )
         for name, target in result.targets.items():
             if name == self.anchor:
                 continue
@@ -346,6 +382,21 @@ class RerunRecorder:
             self.rec.flush(timeout_sec=timeout_s)
         finally:
             self.rec.disconnect()
+
+
+def _mesh3d(model: Any) -> rr.Mesh3D:
+    """A :class:`~ar_anchor.models.Model` as flat-shaded ``rr.Mesh3D`` (vertices repeated per face, so
+    each face keeps its own colour and normal)."""
+    corners = model.vertices[model.faces]  # (F, 3, 3)
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    count = len(model.faces)
+    return rr.Mesh3D(
+        vertex_positions=corners.reshape(-1, 3).astype(np.float32),
+        triangle_indices=np.arange(3 * count, dtype=np.uint32).reshape(-1, 3),
+        vertex_normals=np.repeat(normals, 3, axis=0).astype(np.float32),
+        vertex_colors=np.repeat(np.clip(model.face_colours, 0, 255).astype(np.uint8), 3, axis=0),
+    )
 
 
 def _closed_squares(target: TargetResult) -> list[np.ndarray]:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -42,7 +45,22 @@ def demo_frame(index: int = 40, frames: int = 300) -> np.ndarray:
     return image
 
 
+def demo_video_frame(index: int = 60) -> np.ndarray:
+    """Frame ``index`` of ``ar-anchor demo --video-out demo.mp4`` (the annotated video), cropped to the targets."""
+    with tempfile.TemporaryDirectory() as tmp:
+        video = Path(tmp) / "demo.mp4"
+        command = [sys.executable, "-m", "ar_anchor", "-q", "demo", "--max-frames", str(index + 1)]
+        subprocess.run([*command, "--out", str(Path(tmp) / "run"), "--video-out", str(video)], check=True)
+        capture = cv2.VideoCapture(str(video))
+        for _ in range(index + 1):
+            ok, image = capture.read()
+            if not ok:
+                raise SystemExit(f"{video}: has fewer than {index + 1} frames")
+    return image[120:600, 280:1120]
+
+
 if __name__ == "__main__":
     OUT.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(OUT / "demo_frame.jpg"), demo_frame(), [cv2.IMWRITE_JPEG_QUALITY, 85])
-    print(f"wrote {OUT / 'demo_frame.jpg'}")
+    cv2.imwrite(str(OUT / "demo_overlay.jpg"), demo_video_frame(), [cv2.IMWRITE_JPEG_QUALITY, 88])
+    print(f"wrote {OUT / 'demo_frame.jpg'} and {OUT / 'demo_overlay.jpg'}")
