@@ -339,3 +339,35 @@ def test_recording_holds_overlay_image_meshes_and_camera_trajectory(tmp_path):
     for entity in ("camera/overlay", "world/camera_trajectory", "world/targets/marker_0/overlay/0"):
         assert entity in printed, entity
     assert "Mesh3D" in printed
+
+
+def test_axes_are_drawn_in_their_colours_along_the_target_axes(camera):
+    config = dataclasses.replace(TrackerConfig(), overlays=(OverlayConfig(target="*", kind="axes", size_m=0.05),))
+    pose = facing(0.5)
+    image = OverlayRenderer(config, camera).annotate(
+        np.zeros((camera.height, camera.width, 3), np.uint8), synthetic_result(camera, {"marker:2": (pose, "tracked")})
+    )
+    # x red, y green, z blue (BGR), each a little way along its own axis
+    for axis, channel in ((0, 2), (1, 1), (2, 0)):
+        point = np.zeros(3)
+        point[axis] = 0.03
+        colour = pixel(image, camera, pose, point)
+        assert colour[channel] > 150 and colour[channel] == colour.max(), (axis, colour)
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".stl", ".glb", ".off"])
+def test_mesh_formats_load_the_same_triangles(tmp_path, suffix):
+    import trimesh
+
+    model = pin_model()
+    path = tmp_path / f"pin{suffix}"
+    trimesh.Trimesh(model.vertices, model.faces, process=False).export(path)
+    loaded = load_mesh(path, rgb=(10, 20, 30))
+    assert len(loaded.faces) == len(model.faces)
+
+    def centroids(m):
+        c = m.vertices[m.faces].mean(axis=1)
+        return c[np.lexsort(np.round(c, 5).T)]
+
+    np.testing.assert_allclose(centroids(loaded), centroids(model), atol=1e-5)  # the same triangles, any order
+    assert np.all(loaded.face_colours == (10, 20, 30))

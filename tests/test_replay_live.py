@@ -520,11 +520,12 @@ def test_live_synthetic_device_writes_outputs(tmp_path):
 def test_live_record_then_replay_is_frame_exact(tmp_path):
     # given a recorded live run
     result = run_cli(
-        [*LIVE_15_FRAMES, "--record", "--out", "out"],
+        [*LIVE_15_FRAMES, "--record", "--out", "out", "--video-out", "live_ar.mp4"],
         tmp_path,
     )
     assert result.returncode == 0, describe(result)
     assert_no_traceback(result)
+    assert count_decoded_frames(tmp_path / "live_ar.mp4") == 15  # the annotated video: every processed frame
     out = tmp_path / "out"
     for name in ("raw.mkv", "raw.mkv.timestamps.csv", "camera.yml", "poses.csv", "summary.json", "recording.rrd"):
         assert (out / name).is_file(), f"{name} missing"
@@ -539,9 +540,10 @@ def test_live_record_then_replay_is_frame_exact(tmp_path):
     capture.release()
     assert ok and image.shape[:2] == (360, 640)
     # when the recording is replayed (camera.yml is found beside raw.mkv)
-    replay = run_cli(["-q", "replay", str(out / "raw.mkv"), "--out", "out2"], tmp_path)
+    replay = run_cli(["-q", "replay", str(out / "raw.mkv"), "--out", "out2", "--video-out", "replay.mkv"], tmp_path)
     assert replay.returncode == 0, describe(replay)
     assert_no_traceback(replay)
+    assert count_decoded_frames(tmp_path / "replay.mkv") == 15
     # then the replay sees the very same frames: identical poses.csv, indices and timestamps included
     assert (tmp_path / "out2" / "poses.csv").read_text() == (out / "poses.csv").read_text()
     assert read_summary(tmp_path / "out2")["frames"] == 15
@@ -551,10 +553,11 @@ def test_live_record_then_replay_is_frame_exact(tmp_path):
 def test_sigint_during_live_record_leaves_complete_outputs(tmp_path):
     out = tmp_path / "out"
     argv = ["-q", "live", "--device", "synthetic", "--record", "--out", str(out), "--width", "640", "--height", "360"]
-    summary = run_and_interrupt(argv, tmp_path, out)
+    summary = run_and_interrupt([*argv, "--video-out", str(tmp_path / "ar.mp4")], tmp_path, out)
     with (out / "raw.mkv.timestamps.csv").open(newline="") as handle:
         stamps = list(csv.DictReader(handle))
     assert count_decoded_frames(out / "raw.mkv") == len(stamps)
+    assert count_decoded_frames(tmp_path / "ar.mp4") == len(stamps)  # the annotated video was finalised too
     # every output agrees on which frames were processed (live indices skip frames the camera dropped;
     # the demo scene has markers in view in every frame, so each processed frame has rows)
     assert len(stamps) == summary["frames"] > 10
