@@ -86,6 +86,12 @@ class DetectorConfig:
     # bits are read from the middle of each cell, ignoring this fraction of the cell on every side
     # (OpenCV's perspectiveRemoveIgnoredMarginPerCell, default 0.13); see Detector for the measurements
     cell_margin: float = 0.25
+    # ROI tracking: while targets are tracked, look only around where their markers were (plus their
+    # motion), at a reduced scale for big markers; the whole frame every roi_full_every frames and
+    # whenever a tracked marker is missed (see Detector.detect_regions)
+    roi: bool = True
+    roi_full_every: int = 15
+    roi_margin: float = 0.6  # region margin around a marker, in marker sides
 
 
 @dataclass(frozen=True)
@@ -528,6 +534,9 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     window = det.take("refinement_window", float, defaults.detector.refinement_window, _in_range(0.05, 10.0))
     perimeter = det.take("min_perimeter_rate", float, defaults.detector.min_perimeter_rate, _in_range(0.001, 4.0))
     cell_margin = det.take("cell_margin", float, defaults.detector.cell_margin, _in_range(0.0, 0.45))
+    roi = det.take("roi", bool, defaults.detector.roi)
+    roi_full_every = det.take("roi_full_every", int, defaults.detector.roi_full_every, _in_range(1, 10_000))
+    roi_margin = det.take("roi_margin", float, defaults.detector.roi_margin, _in_range(0.1, 10.0))
     det.done()
     limit = dictionary_size(dictionary)
 
@@ -631,6 +640,9 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
             refinement_window=window,
             min_perimeter_rate=perimeter,
             cell_margin=cell_margin,
+            roi=roi,
+            roi_full_every=roi_full_every,
+            roi_margin=roi_margin,
         ),
         markers=MarkersConfig(length_m=length_m, lengths_m=lengths, ids=ids),
         boards=tuple(boards),

@@ -12,7 +12,7 @@ from .camera import CameraModel
 from .config import CORNER_REFINEMENTS, DetectorConfig, dictionary_id
 from .corners import refine_corners_by_edges
 
-__all__ = ["Detector", "MarkerDetections"]
+__all__ = ["Detector", "MarkerDetections", "Region", "plan_regions"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,60 @@ class MarkerDetections:
 
     def __len__(self) -> int:
         return len(self.ids)
+
+
+@dataclass(frozen=True)
+class Region:
+    """A rectangle of the image to search, ``[x0, x1) x [y0, y1)`` pixels, at ``scale`` (<= 1)."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    scale: float = 1.0
+
+
+def plan_regions(
+    previous: dict[int, np.ndarray],
+    before: dict[int, np.ndarray],
+    size: tuple[int, int],
+    margin: float,
+    target_side_px: float = 80.0,
+) -> list[Region]:
+    """Search regions for the next frame from the markers' last corners (``previous``, id -> (4, 2)),
+    moved on by their last motion (``before``: the frame before), grown by ``margin`` marker sides
+    and by that motion, clipped to the image, and merged where they overlap. A region's scale shrinks
+    its markers to about ``target_side_px`` when they are at least a third larger (never enlarges)."""
+    width, height = size
+    boxes: list[list[float]] = []  # x0, y0, x1, y1, smallest side
+    for marker_id, corners in previous.items():
+        corners = np.asarray(corners, np.float64)
+        motion = corners.mean(axis=0) - before[marker_id].mean(axis=0) if marker_id in before else np.zeros(2)
+        side = float(np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1).mean())
+        grow = margin * side + float(np.abs(motion).max()) + 8.0
+        lo, hi = corners.min(axis=0) + motion - grow, corners.max(axis=0) + motion + grow
+        boxes.append([lo[0], lo[1], hi[0], hi[1], side])
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]), min(a[4], b[4])]
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    regions = []
+    for x0, y0, x1, y1, side in boxes:
+        x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
+        x1, y1 = min(int(np.ceil(x1)) + 1, width), min(int(np.ceil(y1)) + 1, height)
+        if x1 - x0 >= 8 and y1 - y0 >= 8:
+            scale = target_side_px / max(side, 1.0)
+            regions.append(Region(x0, y0, x1, y1, scale if scale < 0.75 else 1.0))  # shrinking a little saves nothing
+    return regions
 
 
 class Detector:
@@ -84,6 +138,63 @@ class Detector:
         if ids is None or len(ids) == 0:
             return MarkerDetections.empty()
         detections = self._clean(ids, corners)
+        if self._edges:
+            k, dist = (None, None) if camera is None else (camera.camera_matrix, camera.dist_or_none)
+            detections = MarkerDetections(
+                detections.ids, refine_corners_by_edges(grey, detections.corners, self._cells, k, dist)
+            )
+        return detections
+
+    def detect_regions(
+        self, image: np.ndarray, regions: list[Region], camera: CameraModel | None = None
+    ) -> MarkerDetections:
+        """Detect markers only inside ``regions`` (ROI tracking), each searched at its own scale.
+
+        A region's crop is searched by the same detector, shrunk first when ``region.scale < 1``
+        (big markers need no full resolution to be found); corners map back to full-image pixels
+        exactly (pixel centres at integers: ``full = (p + 0.5) / scale - 0.5 + origin``), and the
+        edge refinement then runs on the full-resolution image, so ROI corners are as accurate as
+        full-frame ones. A marker found in two overlapping regions at the same place counts once.
+        """
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        found_ids: list[np.ndarray] = []
+        found_corners: list[np.ndarray] = []
+        rejected: list[np.ndarray] = []
+        for region in regions:
+            crop = grey[region.y0 : region.y1, region.x0 : region.x1]
+            if crop.shape[0] < 8 or crop.shape[1] < 8:
+                continue
+            if region.scale < 1.0:
+                size = (max(8, round(crop.shape[1] * region.scale)), max(8, round(crop.shape[0] * region.scale)))
+                search = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
+            else:
+                search = crop
+            fx, fy = search.shape[1] / crop.shape[1], search.shape[0] / crop.shape[0]
+
+            def to_full(points: np.ndarray, fx: float = fx, fy: float = fy, region: Region = region) -> np.ndarray:
+                points = np.asarray(points, np.float64).reshape(-1, 4, 2)
+                out = np.empty_like(points)
+                out[..., 0] = (points[..., 0] + 0.5) / fx - 0.5 + region.x0
+                out[..., 1] = (points[..., 1] + 0.5) / fy - 0.5 + region.y0
+                return out
+
+            corners, ids, candidates = self._detector.detectMarkers(search)
+            if ids is not None and len(ids):
+                found_ids.append(np.asarray(ids).reshape(-1))
+                found_corners.append(to_full(np.asarray(corners)))
+            rejected.extend(to_full(c).astype(np.float32).reshape(1, 4, 2) for c in candidates)
+        self.rejected = tuple(rejected)
+        if not found_ids:
+            return MarkerDetections.empty()
+        ids = np.concatenate(found_ids)
+        corners = np.concatenate(found_corners)
+        keep = np.ones(len(ids), bool)
+        for i in range(len(ids)):  # the same marker seen from two overlapping regions: keep the first
+            for j in range(i):
+                if keep[j] and ids[j] == ids[i] and np.abs(corners[j] - corners[i]).max() < 2.0:
+                    keep[i] = False
+                    break
+        detections = self._clean(ids[keep], corners[keep])
         if self._edges:
             k, dist = (None, None) if camera is None else (camera.camera_matrix, camera.dist_or_none)
             detections = MarkerDetections(

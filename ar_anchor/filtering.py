@@ -35,6 +35,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,6 +56,28 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+class _KalmanFilter(KalmanFilter):
+    """filterpy's filter with the measurement log-likelihood (which the IMM reads every update)
+    computed by a Cholesky solve instead of ``scipy.stats.multivariate_normal`` (~0.1 ms a call)."""
+
+    @property
+    def log_likelihood(self) -> float:
+        if self._log_likelihood is None:
+            innovation = np.asarray(self.y, np.float64).reshape(-1)
+            try:
+                lower = np.linalg.cholesky(np.asarray(self.S, np.float64))
+            except np.linalg.LinAlgError:
+                self._log_likelihood = math.log(sys.float_info.min)
+                return self._log_likelihood
+            whitened = np.linalg.solve(lower, innovation)
+            self._log_likelihood = float(
+                -0.5 * whitened @ whitened
+                - np.log(np.diag(lower)).sum()
+                - 0.5 * len(innovation) * math.log(2.0 * math.pi)
+            )
+        return self._log_likelihood
 
 
 # ---------------------------------------------------------------------------- SO(3) helpers
@@ -131,7 +154,7 @@ class _TwoModeCV:
         self.accel_moving = accel_moving
         self.filters = []
         for _ in range(2):
-            kf = KalmanFilter(dim_x=6, dim_z=3)
+            kf = _KalmanFilter(dim_x=6, dim_z=3)
             kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
             kf.x = x0.reshape(6, 1).copy()
             kf.P = p0.copy()
@@ -295,7 +318,7 @@ class _TiltTracker:
     """
 
     def __init__(self, tilt: np.ndarray, sigma: float, accel: float) -> None:
-        self.kf = KalmanFilter(dim_x=4, dim_z=2)
+        self.kf = _KalmanFilter(dim_x=4, dim_z=2)
         self.kf.H = np.hstack([np.eye(2), np.zeros((2, 2))])
         self.kf.x = np.concatenate([tilt, np.zeros(2)]).reshape(4, 1)
         self.kf.P = np.diag([sigma**2, sigma**2, 1.0, 1.0])

@@ -9,11 +9,11 @@ is ``C = -R^T t`` (:meth:`Pose.camera_centre`). Rotations travel as Rodrigues ve
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 __all__ = [
     "Pose",
@@ -42,15 +42,33 @@ def matrix_from_rvec(rvec: np.ndarray) -> np.ndarray:
 def rvec_from_matrix(rotation: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) -> Rodrigues vector (3,) with norm in [0, pi].
 
-    Uses scipy's quaternion-based log map: ``cv2.Rodrigues`` rounds rotations below about
-    1e-5 rad to exactly zero, which would lose small increments when poses are composed.
+    A quaternion-based log map (Shepperd's method, as scipy's ``Rotation.from_matrix``, in plain
+    numpy: it runs several times per target and frame): ``cv2.Rodrigues`` rounds rotations below
+    about 1e-5 rad to exactly zero, which would lose small increments when poses are composed.
     """
-    rotation = np.asarray(rotation, dtype=np.float64)
-    if rotation.shape != (3, 3):
-        raise ValueError(f"rotation: expected shape (3, 3), got {rotation.shape}")
-    if not np.all(np.isfinite(rotation)):
+    m = np.asarray(rotation, dtype=np.float64)
+    if m.shape != (3, 3):
+        raise ValueError(f"rotation: expected shape (3, 3), got {m.shape}")
+    if not np.all(np.isfinite(m)):
         return np.full(3, np.nan)
-    return Rotation.from_matrix(rotation).as_rotvec()
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    largest = int(np.argmax((m[0, 0], m[1, 1], m[2, 2], trace)))
+    if largest == 3:
+        q = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 1.0 + trace])
+    elif largest == 0:
+        q = np.array([1.0 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0], m[2, 1] - m[1, 2]])
+    elif largest == 1:
+        q = np.array([m[0, 1] + m[1, 0], 1.0 + m[1, 1] - m[0, 0] - m[2, 2], m[1, 2] + m[2, 1], m[0, 2] - m[2, 0]])
+    else:
+        q = np.array([m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1.0 + m[2, 2] - m[0, 0] - m[1, 1], m[1, 0] - m[0, 1]])
+    q /= np.linalg.norm(q)
+    if q[3] < 0:
+        q = -q
+    vector, w = q[:3], q[3]
+    sine = float(np.linalg.norm(vector))
+    if sine < 1e-12:
+        return 2.0 * vector / w  # the small-angle limit of angle * vector / sine
+    return 2.0 * math.atan2(sine, w) * vector / sine
 
 
 def angle_between_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:

@@ -17,7 +17,7 @@ import numpy as np
 
 from .camera import CameraModel
 from .config import TrackerConfig
-from .detection import Detector, MarkerDetections
+from .detection import Detector, MarkerDetections, plan_regions
 from .filtering import TargetTrack
 from .geometry import Pose, marker_corners_in_marker
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
@@ -102,6 +102,11 @@ class Tracker:
         self._cameras: dict[tuple[int, int], CameraModel] = {camera.size: camera}
         self.tracks: dict[str, TargetTrack] = {}
         self.board_solvers = [BoardSolver(board, config.pose.board_inlier_px) for board in config.boards]
+        # ROI tracking state: the last two frames' corners per marker id
+        self._last_corners: dict[int, np.ndarray] = {}
+        self._before_corners: dict[int, np.ndarray] = {}
+        self._frames_since_full = 0
+        self._last_size: tuple[int, int] | None = None
 
     def camera_for(self, size: tuple[int, int]) -> CameraModel:
         """The calibration scaled to a frame size (warns once per new size)."""
@@ -123,10 +128,42 @@ class Tracker:
             return next(s.outline for s in self.board_solvers if s.name == ident)
         return marker_corners_in_marker(self.config.marker_length(int(ident)))[None]
 
+    def _detect(self, image: np.ndarray, camera: CameraModel) -> MarkerDetections:
+        """Full-frame detection, or ROI tracking between full-frame searches (``[detector] roi``).
+
+        The whole frame is searched on the first frame, every ``roi_full_every`` frames, after a
+        frame size change, and again in the same frame whenever a region search misses a marker that
+        the previous frame had (so a lost marker is looked for at once, and a new one within
+        ``roi_full_every`` frames).
+        """
+        settings = self.config.detector
+        size = (image.shape[1], image.shape[0])
+        full = (
+            not settings.roi
+            or not self._last_corners
+            or self._frames_since_full + 1 >= settings.roi_full_every
+            or size != self._last_size
+        )
+        detections = None
+        if not full:
+            regions = plan_regions(self._last_corners, self._before_corners, size, settings.roi_margin)
+            detections = self.detector.detect_regions(image, regions, camera)
+            if not set(self._last_corners) <= set(detections.ids.tolist()):
+                detections = None  # a marker was missed: search everywhere
+        if detections is None:
+            detections = self.detector.detect(image, camera)
+            self._frames_since_full = 0
+        else:
+            self._frames_since_full += 1
+        self._last_size = size
+        self._before_corners = self._last_corners
+        self._last_corners = {int(i): c for i, c in zip(detections.ids, detections.corners)}
+        return detections
+
     def process(self, frame: Frame) -> FrameResult:
         camera = self.camera_for(frame.size)
         t0 = time.perf_counter()
-        detections = self.detector.detect(frame.image, camera)
+        detections = self._detect(frame.image, camera)
         if self.config.pose.recover_markers:
             for solver in self.board_solvers:
                 detections = self.detector.recover(

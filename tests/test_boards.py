@@ -661,6 +661,9 @@ class _FixedDetections:
     def detect(self, image: np.ndarray, camera=None) -> MarkerDetections:
         return next(self.frames)
 
+    def detect_regions(self, image: np.ndarray, regions, camera=None) -> MarkerDetections:
+        return next(self.frames)
+
     def recover(self, image, detections, *args, **kwargs) -> MarkerDetections:
         return detections
 
