@@ -153,36 +153,47 @@ class Detector:
         A region's crop is searched by the same detector, shrunk first when ``region.scale < 1``
         (big markers need no full resolution to be found); corners map back to full-image pixels
         exactly (pixel centres at integers: ``full = (p + 0.5) / scale - 0.5 + origin``), and the
-        edge refinement then runs on the full-resolution image, so ROI corners are as accurate as
-        full-frame ones. A marker found in two overlapping regions at the same place counts once.
+        edge refinement then runs on the region's full-resolution pixels, so ROI corners are as
+        accurate as full-frame ones. Only the regions are converted to grey. A marker found in two
+        overlapping regions at the same place counts once.
         """
-        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         found_ids: list[np.ndarray] = []
         found_corners: list[np.ndarray] = []
         rejected: list[np.ndarray] = []
+        k, dist = (None, None) if camera is None else (camera.camera_matrix, camera.dist_or_none)
         for region in regions:
-            crop = grey[region.y0 : region.y1, region.x0 : region.x1]
+            crop = image[region.y0 : region.y1, region.x0 : region.x1]
             if crop.shape[0] < 8 or crop.shape[1] < 8:
                 continue
+            grey = crop if crop.ndim == 2 else cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY)  # only the region's pixels
             if region.scale < 1.0:
-                size = (max(8, round(crop.shape[1] * region.scale)), max(8, round(crop.shape[0] * region.scale)))
-                search = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
+                size = (max(8, round(grey.shape[1] * region.scale)), max(8, round(grey.shape[0] * region.scale)))
+                search = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
             else:
-                search = crop
-            fx, fy = search.shape[1] / crop.shape[1], search.shape[0] / crop.shape[0]
-
-            def to_full(points: np.ndarray, fx: float = fx, fy: float = fy, region: Region = region) -> np.ndarray:
-                points = np.asarray(points, np.float64).reshape(-1, 4, 2)
-                out = np.empty_like(points)
-                out[..., 0] = (points[..., 0] + 0.5) / fx - 0.5 + region.x0
-                out[..., 1] = (points[..., 1] + 0.5) / fy - 0.5 + region.y0
-                return out
-
+                search = grey
+            origin = np.array([region.x0, region.y0], np.float64)
             corners, ids, candidates = self._detector.detectMarkers(search)
+            if (ids is None or not len(ids)) and search is not grey:
+                # shrinking can lose a marker (e.g. sides bent by a strong lens): look at full scale
+                search = grey
+                corners, ids, candidates = self._detector.detectMarkers(grey)
+            factors = (search.shape[1] / grey.shape[1], search.shape[0] / grey.shape[0])
+
+            def to_crop(points: np.ndarray, factors: tuple[float, float] = factors) -> np.ndarray:
+                points = np.asarray(points, np.float64).reshape(-1, 4, 2)
+                return (points + 0.5) / np.asarray(factors) - 0.5
+
             if ids is not None and len(ids):
+                local = to_crop(np.asarray(corners))
+                if self._edges:  # refined at full resolution, on the region's own pixels
+                    shifted = None
+                    if k is not None:
+                        shifted = k.copy()
+                        shifted[:2, 2] -= origin
+                    local = refine_corners_by_edges(grey, local, self._cells, shifted, dist)
                 found_ids.append(np.asarray(ids).reshape(-1))
-                found_corners.append(to_full(np.asarray(corners)))
-            rejected.extend(to_full(c).astype(np.float32).reshape(1, 4, 2) for c in candidates)
+                found_corners.append(local + origin)
+            rejected.extend((to_crop(c) + origin).astype(np.float32).reshape(1, 4, 2) for c in candidates)
         self.rejected = tuple(rejected)
         if not found_ids:
             return MarkerDetections.empty()
@@ -194,13 +205,7 @@ class Detector:
                 if keep[j] and ids[j] == ids[i] and np.abs(corners[j] - corners[i]).max() < 2.0:
                     keep[i] = False
                     break
-        detections = self._clean(ids[keep], corners[keep])
-        if self._edges:
-            k, dist = (None, None) if camera is None else (camera.camera_matrix, camera.dist_or_none)
-            detections = MarkerDetections(
-                detections.ids, refine_corners_by_edges(grey, detections.corners, self._cells, k, dist)
-            )
-        return detections
+        return self._clean(ids[keep], corners[keep])
 
     def recover(
         self,

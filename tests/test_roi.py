@@ -124,3 +124,17 @@ def test_a_marker_missed_by_the_regions_is_searched_for_in_the_whole_frame_at_on
 
 def test_region_dataclass_defaults_to_full_scale():
     assert Region(0, 0, 10, 10).scale == 1.0
+
+
+def test_region_corners_match_full_frame_corners_through_lens_distortion():
+    from tests.test_corners import corner_view, distorted_camera
+
+    camera = distorted_camera()
+    source, camera_from_world = corner_view(camera)
+    image = source.render_view(camera_from_world)
+    detector = Detector(DetectorConfig())
+    full = detector.detect(image, camera)
+    assert full.ids.tolist() == [5]
+    for region in plan_regions({5: full.corners[0]}, {}, camera.size, margin=0.6):
+        found = detector.detect_regions(image, [region], camera)
+        np.testing.assert_allclose(found.corners, full.corners, atol=0.02)
