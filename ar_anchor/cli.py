@@ -230,8 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument(
         "name",
-        choices=("stability", "boards", "overlay"),
-        help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles",
+        choices=("stability", "boards", "overlay", "speed"),
+        help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
+        "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop",
     )
     bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
     bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
@@ -597,7 +598,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
 
-    if args.name == "overlay":
+    if args.name == "speed":
+        from .bench_speed import write_speed_report
+
+        write_speed_report(args.out, quick=args.quick, progress=progress, command=command)
+    elif args.name == "overlay":
         write_overlay_report(args.out, frames=30 if args.quick else 60, progress=progress, command=command)
     elif args.name == "boards":
         frames = 60 if args.quick else 150
