@@ -70,12 +70,16 @@ def anchor_from_target(target: TargetResult) -> np.ndarray:
     squares = np.asarray(outline, np.float64).reshape(-1, 4, 3)
     # squares run TL, TR, BR, BL seen from the front: (BL - TL) x (TR - TL) points out of the target
     normal = np.cross(squares[:, 3] - squares[:, 0], squares[:, 1] - squares[:, 0]).sum(axis=0)
-    z = normal / np.linalg.norm(normal)
+    matrix[:3, 3] = squares.reshape(-1, 3).mean(axis=0)
     right = squares[0, 1] - squares[0, 0]
+    if np.linalg.norm(normal) < 1e-9 * max(float(np.linalg.norm(right)) ** 2, 1e-12):
+        return matrix  # a closed non-planar layout (e.g. a cube of markers): no outside to face; its own axes
+    z = normal / np.linalg.norm(normal)
     x = right - z * float(right @ z)
+    if np.linalg.norm(x) < 1e-12:
+        return matrix
     x /= np.linalg.norm(x)
     matrix[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    matrix[:3, 3] = squares.reshape(-1, 3).mean(axis=0)
     return matrix
 
 

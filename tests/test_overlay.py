@@ -371,3 +371,16 @@ def test_mesh_formats_load_the_same_triangles(tmp_path, suffix):
 
     np.testing.assert_allclose(centroids(loaded), centroids(model), atol=1e-5)  # the same triangles, any order
     assert np.all(loaded.face_colours == (10, 20, 30))
+
+
+def test_a_closed_non_planar_board_gets_a_finite_anchor_frame():
+    # two markers back to back (a sign printed on both sides): their outward normals cancel
+    front = np.array([[-0.02, 0.02, 0.0], [0.02, 0.02, 0.0], [0.02, -0.02, 0.0], [-0.02, -0.02, 0.0]])
+    back = front[[1, 0, 3, 2]] - [0.0, 0.0, 0.001]
+    outline = np.stack([front, back])
+    target = TargetResult("board:sign", "tracked", Pose.identity(), None, 0.0, 1.0, 0.04, outline_in_target=outline)
+    matrix = anchor_from_target(target)
+    # then the anchor is the board's own axes at its centre, not NaN
+    assert np.all(np.isfinite(matrix))
+    np.testing.assert_allclose(matrix[:3, :3], np.eye(3))
+    np.testing.assert_allclose(matrix[:3, 3], [0.0, 0.0, -0.0005])
