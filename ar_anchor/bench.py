@@ -21,7 +21,7 @@ import numpy as np
 
 from .camera import CameraModel
 from .config import BoardConfig, TrackerConfig
-from .geometry import Pose, angle_between_deg
+from .geometry import Pose, angle_between_deg, pose_errors
 from .sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
 from .tracker import Tracker
 
@@ -156,8 +156,7 @@ def _series_metrics(poses: list[Pose | None], truth: list[Pose | None], moving: 
     pairs = [(p, t) for p, t in zip(poses, truth) if p is not None and t is not None]
     if not pairs:
         return {"frames": 0}
-    rot = np.array([angle_between_deg(p.rotation, t.rotation) for p, t in pairs])
-    trans = np.array([100 * np.linalg.norm(p.tvec - t.tvec) / np.linalg.norm(t.tvec) for p, t in pairs])
+    rot, trans = np.array([pose_errors(p, t) for p, t in pairs]).T
     out: dict[str, Any] = {
         "frames": len(pairs),
         "flipped_pct": 100.0 * float(np.mean(rot > FLIP_DEG)),

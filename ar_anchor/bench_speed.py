@@ -47,7 +47,7 @@ import numpy as np
 
 from .camera import CameraModel
 from .config import BoardConfig, TrackerConfig, dictionary_id
-from .geometry import Pose, angle_between_deg
+from .geometry import Pose, pose_errors
 from .sources.base import Frame
 from .sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
 from .tracker import Tracker
@@ -316,8 +316,9 @@ def _accuracy(outputs: Sequence[Mapping[str, Pose]], truths: Sequence[Mapping[st
             pose = output.get(name)
             if pose is None:
                 continue
-            rot.append(angle_between_deg(pose.rotation, true_pose.rotation))
-            trans.append(100.0 * float(np.linalg.norm(pose.tvec - true_pose.tvec) / np.linalg.norm(true_pose.tvec)))
+            rotation, translation = pose_errors(pose, true_pose)
+            rot.append(rotation)
+            trans.append(translation)
     if in_view == 0:
         return {"in_view": 0}
     rot_a, trans_a = np.asarray(rot), np.asarray(trans)

@@ -21,6 +21,7 @@ __all__ = [
     "look_at",
     "marker_corners_in_marker",
     "matrix_from_rvec",
+    "pose_errors",
     "rvec_from_matrix",
     "transform_points",
 ]
@@ -76,6 +77,12 @@ def angle_between_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:
     relative = np.asarray(rotation_a).T @ np.asarray(rotation_b)
     cos_angle = np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)
     return float(np.degrees(np.arccos(cos_angle)))
+
+
+def pose_errors(estimate: Pose, truth: Pose) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in % of the true distance) of ``estimate``."""
+    rotation = angle_between_deg(estimate.rotation, truth.rotation)
+    return rotation, 100.0 * float(np.linalg.norm(estimate.tvec - truth.tvec) / np.linalg.norm(truth.tvec))
 
 
 def marker_corners_in_marker(length_m: float) -> np.ndarray:

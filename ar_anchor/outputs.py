@@ -18,7 +18,7 @@ from typing import IO, Any
 import numpy as np
 
 from .errors import OutputError
-from .geometry import Pose, angle_between_deg
+from .geometry import Pose, pose_errors
 from .tracker import FrameResult
 
 __all__ = ["POSES_CSV_HEADER", "PosesCsvWriter", "RawVideoWriter", "RunSummary", "write_json_atomic"]
@@ -206,11 +206,9 @@ class RunSummary:
             if true_pose is None:
                 continue
             stats.measured_in_view += 1
-            stats.rotation_errors_deg.append(angle_between_deg(target.pose.rotation, true_pose.rotation))
-            distance = float(np.linalg.norm(true_pose.tvec))
-            stats.translation_errors_pct.append(
-                100.0 * float(np.linalg.norm(target.pose.tvec - true_pose.tvec)) / distance
-            )
+            rotation, translation = pose_errors(target.pose, true_pose)
+            stats.rotation_errors_deg.append(rotation)
+            stats.translation_errors_pct.append(translation)
 
     def as_dict(self, wall_time_s: float, **extra: Any) -> dict[str, Any]:
         targets: dict[str, Any] = {}

@@ -220,35 +220,29 @@ class RerunRecorder:
         rec = self.rec
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("time", duration=frame.timestamp_ns * 1e-9)
-        every = self.settings.image_every
         scale = self.settings.image_scale
         if self._video_frame_ns is not None:
             scale = 1.0  # the referenced video is the full-resolution original
             if frame.index < self._video_frame_ns.size:
                 rec.log("camera/image", rr.VideoFrameReference(nanoseconds=int(self._video_frame_ns[frame.index])))
-        elif every and frame.index % every == 0:
-            image = frame.image
-            if scale != 1.0:
-                size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
-                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
-            if ok:
-                rec.log("camera/image", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+        elif self.wants_image(frame):
+            self._log_jpeg("camera/image", frame.image)
         if overlay is not None and self.wants_image(frame):
-            image = overlay
-            if self.settings.image_scale != 1.0:
-                size = (
-                    max(1, round(image.shape[1] * self.settings.image_scale)),
-                    max(1, round(image.shape[0] * self.settings.image_scale)),
-                )
-                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
-            if ok:
-                rec.log("camera/overlay", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+            self._log_jpeg("camera/overlay", overlay)
         self._log_detections(result, scale)
         self._log_world(result, frame.truth)
         for stage, ms in result.latency_ms.items():
             rec.log(f"metrics/latency/{stage.removesuffix('_ms')}", rr.Scalars(ms))
+
+    def _log_jpeg(self, path: str, image: np.ndarray) -> None:
+        """``image`` at the recording's ``image_scale`` and JPEG quality, under ``path``."""
+        scale = self.settings.image_scale
+        if scale != 1.0:
+            size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
+        if ok:
+            self.rec.log(path, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
 
     def _log_detections(self, result: FrameResult, scale: float) -> None:
         def to_rerun(pixels: np.ndarray) -> np.ndarray:
