@@ -55,6 +55,7 @@ class Region:
     x1: int
     y1: int
     scale: float = 1.0
+    cell_px: float = 10.0  # the expected width of a marker cell in the searched (scaled) image
 
 
 def plan_regions(
@@ -63,11 +64,13 @@ def plan_regions(
     size: tuple[int, int],
     margin: float,
     target_side_px: float = 80.0,
+    cells: int = 6,
 ) -> list[Region]:
     """Search regions for the next frame from the markers' last corners (``previous``, id -> (4, 2)),
     moved on by their last motion (``before``: the frame before), grown by ``margin`` marker sides
     and by that motion, clipped to the image, and merged where they overlap. A region's scale shrinks
-    its markers to about ``target_side_px`` when they are at least a third larger (never enlarges)."""
+    its markers to about ``target_side_px`` when they are at least a third larger (never enlarges).
+    ``cells``: marker cells per side, border included (for the regions' expected cell size)."""
     width, height = size
     boxes: list[list[float]] = []  # x0, y0, x1, y1, smallest side
     for marker_id, corners in previous.items():
@@ -96,7 +99,8 @@ def plan_regions(
         x1, y1 = min(int(np.ceil(x1)) + 1, width), min(int(np.ceil(y1)) + 1, height)
         if x1 - x0 >= 8 and y1 - y0 >= 8:
             scale = target_side_px / max(side, 1.0)
-            regions.append(Region(x0, y0, x1, y1, scale if scale < 0.75 else 1.0))  # shrinking a little saves nothing
+            scale = scale if scale < 0.75 else 1.0  # shrinking a little saves nothing
+            regions.append(Region(x0, y0, x1, y1, scale, side * scale / cells))
     return regions
 
 
@@ -112,7 +116,7 @@ class Detector:
         # subpix: window relative to a marker cell (OpenCV's default 0.3). On far markers its corners
         # keep a bias of a few tenths of a pixel whatever the window, hence the "edges" default
         self._edges = config.corner_refinement == "edges"
-        self._cells = int(self.dictionary.markerSize) + 2
+        self.cells = int(self.dictionary.markerSize) + 2  # marker cells per side, border included
         if hasattr(params, "relativeCornerRefinmentWinSize"):
             params.relativeCornerRefinmentWinSize = config.refinement_window
         params.minMarkerPerimeterRate = config.min_perimeter_rate
@@ -124,6 +128,7 @@ class Detector:
         params.perspectiveRemovePixelPerCell = 6
         self.parameters = params
         self._detector = cv2.aruco.ArucoDetector(self.dictionary, params)
+        self._region_detectors: dict[int, cv2.aruco.ArucoDetector] = {}
         self._warned_duplicates: set[int] = set()
         self.rejected: tuple[np.ndarray, ...] = ()  # the last image's rejected candidates
 
@@ -141,7 +146,7 @@ class Detector:
         if self._edges:
             k, dist = (None, None) if camera is None else (camera.camera_matrix, camera.dist_or_none)
             detections = MarkerDetections(
-                detections.ids, refine_corners_by_edges(grey, detections.corners, self._cells, k, dist)
+                detections.ids, refine_corners_by_edges(grey, detections.corners, self.cells, k, dist)
             )
         return detections
 
@@ -168,13 +173,17 @@ class Detector:
             grey = crop if crop.ndim == 2 else cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY)  # only the region's pixels
             if region.scale < 1.0:
                 size = (max(8, round(grey.shape[1] * region.scale)), max(8, round(grey.shape[0] * region.scale)))
-                search = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+                # bilinear is 7x cheaper than area averaging and good enough to find a marker shrunk by up to
+                # half (its corners are refined at full resolution afterwards); below that it would alias
+                shrink = cv2.INTER_LINEAR if region.scale >= 0.5 else cv2.INTER_AREA
+                search = cv2.resize(grey, size, interpolation=shrink)
             else:
                 search = grey
             origin = np.array([region.x0, region.y0], np.float64)
-            corners, ids, candidates = self._detector.detectMarkers(search)
-            if (ids is None or not len(ids)) and search is not grey:
-                # shrinking can lose a marker (e.g. sides bent by a strong lens): look at full scale
+            corners, ids, candidates = self._region_detector(region.cell_px).detectMarkers(search)
+            if ids is None or not len(ids):
+                # the one threshold window, or shrinking (e.g. sides bent by a strong lens), can lose a
+                # marker: look again with the full-frame detector at full scale
                 search = grey
                 corners, ids, candidates = self._detector.detectMarkers(grey)
             factors = (search.shape[1] / grey.shape[1], search.shape[0] / grey.shape[0])
@@ -190,7 +199,7 @@ class Detector:
                     if k is not None:
                         shifted = k.copy()
                         shifted[:2, 2] -= origin
-                    local = refine_corners_by_edges(grey, local, self._cells, shifted, dist)
+                    local = refine_corners_by_edges(grey, local, self.cells, shifted, dist)
                 found_ids.append(np.asarray(ids).reshape(-1))
                 found_corners.append(local + origin)
             rejected.extend((to_crop(c) + origin).astype(np.float32).reshape(1, 4, 2) for c in candidates)
@@ -206,6 +215,27 @@ class Detector:
                     keep[i] = False
                     break
         return self._clean(ids[keep], corners[keep])
+
+    def _region_detector(self, cell_px: float) -> cv2.aruco.ArucoDetector:
+        """A detector for a region whose marker cells are about ``cell_px`` wide (after its scale): the
+        full-frame detector's parameters, but one adaptive-threshold window (about two cells) instead of
+        the three sizes a full-frame search must try, since the marker's size is known. A third less time."""
+        window = 13 if cell_px < 8.0 else 23
+        detector = self._region_detectors.get(window)
+        if detector is None:
+            params = cv2.aruco.DetectorParameters()
+            for name in (
+                "cornerRefinementMethod",
+                "relativeCornerRefinmentWinSize",
+                "minMarkerPerimeterRate",
+                "perspectiveRemoveIgnoredMarginPerCell",
+                "perspectiveRemovePixelPerCell",
+            ):
+                if hasattr(params, name):
+                    setattr(params, name, getattr(self.parameters, name))
+            params.adaptiveThreshWinSizeMin = params.adaptiveThreshWinSizeMax = window
+            detector = self._region_detectors[window] = cv2.aruco.ArucoDetector(self.dictionary, params)
+        return detector
 
     def recover(
         self,
@@ -238,7 +268,7 @@ class Detector:
         if self._edges:
             new = ~np.isin(recovered.ids, detections.ids)
             refined = recovered.corners.copy()
-            refined[new] = refine_corners_by_edges(grey, refined[new], self._cells, camera_matrix, dist)
+            refined[new] = refine_corners_by_edges(grey, refined[new], self.cells, camera_matrix, dist)
             recovered = MarkerDetections(recovered.ids, refined)
         return recovered
 

@@ -9,6 +9,7 @@ is ``C = -R^T t`` (:meth:`Pose.camera_centre`). Rotations travel as Rodrigues ve
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -134,10 +135,12 @@ class Pose:
             raise ValueError(f"matrix: expected shape (4, 4), got {matrix.shape}")
         return cls.from_matrix(matrix[:3, :3], matrix[:3, 3])
 
-    @property
+    @functools.cached_property
     def rotation(self) -> np.ndarray:
-        """Rotation matrix R (3, 3)."""
-        return matrix_from_rvec(self.rvec)
+        """Rotation matrix R (3, 3), read-only (computed once: poses are asked for it many times a frame)."""
+        rotation = matrix_from_rvec(self.rvec)
+        rotation.flags.writeable = False
+        return rotation
 
     def as_homogeneous(self) -> np.ndarray:
         """4x4 matrix [[R, t], [0, 1]]."""

@@ -119,11 +119,13 @@ def check_pose(
     max_reproj_px: float,
     *,
     require_front: bool = True,
+    error: float | None = None,
 ) -> tuple[float, str | None]:
     """Validate a solver result. Returns (RMS reprojection error, reason it is rejected or None).
 
     ``require_front``: the target's +z side faces the camera (a printed marker is opaque; its
     frame's z points toward the viewer), i.e. the camera centre has z > 0 in the target frame.
+    ``error``: the pose's RMS reprojection error when the caller has it already.
     """
     if not pose.is_finite():
         return math.nan, "non-finite rvec/tvec"
@@ -137,7 +139,8 @@ def check_pose(
         return math.nan, "target (partly) behind the camera"
     if require_front and pose.camera_centre()[2] <= 0:
         return math.nan, "target seen from behind (camera on the back side of its plane)"
-    error = reprojection_rms(pose, points_in_target, points_in_image, camera)
+    if error is None:
+        error = reprojection_rms(pose, points_in_target, points_in_image, camera)
     if not math.isfinite(error) or error > max_reproj_px:
         return error, f"reprojection error {error:.3g} px > {max_reproj_px:g} px"
     return error, None
@@ -147,19 +150,20 @@ def _quad_problem(corners: np.ndarray) -> str | None:
     """Reject corner sets no real square can produce: non-finite, tiny, non-convex or self-intersecting."""
     if corners.shape != (4, 2):
         return f"expected 4x2 corners, got shape {corners.shape}"
-    if not np.all(np.isfinite(corners)):
+    points = corners.tolist()  # four points: plain floats are several times faster than numpy here
+    if not all(math.isfinite(v) for point in points for v in point):
         return "non-finite corner coordinates"
-    if np.max(np.abs(corners)) > 1e6:
+    if max(abs(v) for point in points for v in point) > 1e6:
         return "corner coordinates out of range"
-    edges = np.roll(corners, -1, axis=0) - corners
-    following = np.roll(edges, -1, axis=0)
-    cross = edges[:, 0] * following[:, 1] - edges[:, 1] * following[:, 0]
-    area = 0.5 * abs(
-        float(np.sum(corners[:, 0] * np.roll(corners[:, 1], -1) - np.roll(corners[:, 0], -1) * corners[:, 1]))
-    )
+    crosses, twice_area = [], 0.0
+    for k in range(4):
+        (x0, y0), (x1, y1), (x2, y2) = points[k], points[(k + 1) % 4], points[(k + 2) % 4]
+        crosses.append((x1 - x0) * (y2 - y1) - (y1 - y0) * (x2 - x1))
+        twice_area += x0 * y1 - x1 * y0
+    area = 0.5 * abs(twice_area)
     if area < 1.0:
         return f"degenerate quadrilateral (area {area:.3g} px^2)"
-    if not (np.all(cross > 0) or np.all(cross < 0)):
+    if not (all(c > 0 for c in crosses) or all(c < 0 for c in crosses)):
         return "corners do not form a convex quadrilateral"
     return None
 
@@ -195,15 +199,20 @@ def solve_marker(
         polished: list[Pose] = []
         for rvec, tvec in zip(rvecs[:count], tvecs[:count]):
             pose = Pose(np.asarray(rvec).reshape(3), np.asarray(tvec).reshape(3))
+            error = None
             if pose.is_finite():
                 # IPPE is a closed form, not the least-squares pose: on precise corners it can be off by
                 # 0.1 px and 0.2 deg (12 cm marker at 0.5 m). LM polishes each solution within its own
                 # branch; one that slides into the other branch's minimum keeps IPPE's version.
-                refined = _refine_lm(pose, points_in_marker, corners, camera.camera_matrix, camera.dist_or_none)
+                refined, refined_error, start_error = _refine_lm_rms(
+                    pose, points_in_marker, corners, camera.camera_matrix, camera.dist_or_none
+                )
                 if not any(angle_between_deg(refined.rotation, p.rotation) < 1.0 for p in polished):
-                    pose = refined
+                    pose, error = refined, refined_error
+                else:
+                    error = start_error
                 polished.append(pose)
-            error, reason = check_pose(pose, points_in_marker, corners, camera, max_reproj_px)
+            error, reason = check_pose(pose, points_in_marker, corners, camera, max_reproj_px, error=error)
             all_errors.append(error)
             if reason is None:
                 candidates.append(PoseHypothesis(pose, error))
@@ -487,18 +496,43 @@ def _residuals(pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist
     return np.linalg.norm(projected.reshape(-1, 2) - np.asarray(img, np.float64).reshape(-1, 2), axis=1)
 
 
+def _rms(pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None) -> float:
+    residual = cv2.projectPoints(obj, pose.rvec, pose.tvec, k, dist)[0].reshape(-1, 2) - img
+    return math.sqrt(float(np.mean(residual * residual)) * 2.0)
+
+
+def _folded(rvec: np.ndarray) -> np.ndarray:
+    """The same rotation with its angle in [0, pi] (LM may step past pi)."""
+    angle = math.sqrt(float(rvec @ rvec))
+    if angle <= math.pi:
+        return rvec
+    turns = math.floor((angle + math.pi) / (2.0 * math.pi))  # angle - 2 pi turns lies in (-pi, pi]
+    return rvec * ((angle - 2.0 * math.pi * turns) / angle)
+
+
+def _refine_lm_rms(
+    pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None
+) -> tuple[Pose, float, float]:
+    """``solvePnPRefineLM`` from ``pose``: (the better of the refined and the start pose, its RMS
+    reprojection error, the start pose's RMS error). The start pose when LM fails or diverges."""
+    obj, img = np.asarray(obj, np.float64), np.asarray(img, np.float64).reshape(-1, 2)
+    before = _rms(pose, obj, img, k, dist)
+    if len(obj) < 4:
+        return pose, before, before
+    try:
+        rvec, tvec = cv2.solvePnPRefineLM(
+            obj, img, k, dist, pose.rvec.reshape(3, 1).copy(), pose.tvec.reshape(3, 1).copy()
+        )
+    except cv2.error:
+        return pose, before, before
+    rvec, tvec = rvec.reshape(3), tvec.reshape(3)
+    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return pose, before, before
+    refined = Pose(_folded(rvec), tvec)
+    after = _rms(refined, obj, img, k, dist)
+    return (refined, after, before) if after <= before else (pose, before, before)
+
+
 def _refine_lm(pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None) -> Pose:
     """``solvePnPRefineLM`` from ``pose``; the start pose when the refinement fails or diverges."""
-    if len(obj) < 4:
-        return pose
-    rvec, tvec = pose.rvec.reshape(3, 1).copy(), pose.tvec.reshape(3, 1).copy()
-    try:
-        rvec, tvec = cv2.solvePnPRefineLM(np.asarray(obj, np.float64), np.asarray(img, np.float64), k, dist, rvec, tvec)
-    except cv2.error:
-        return pose
-    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
-        return pose
-    refined = Pose.from_matrix(cv2.Rodrigues(rvec)[0], np.ravel(tvec))  # rotation angle folded into [0, pi]
-    before = float(np.mean(_residuals(pose, obj, img, k, dist) ** 2))
-    after = float(np.mean(_residuals(refined, obj, img, k, dist) ** 2))
-    return refined if after <= before else pose
+    return _refine_lm_rms(pose, obj, img, k, dist)[0]

@@ -146,7 +146,9 @@ class Tracker:
         )
         detections = None
         if not full:
-            regions = plan_regions(self._last_corners, self._before_corners, size, settings.roi_margin)
+            regions = plan_regions(
+                self._last_corners, self._before_corners, size, settings.roi_margin, cells=self.detector.cells
+            )
             detections = self.detector.detect_regions(image, regions, camera)
             if not set(self._last_corners) <= set(detections.ids.tolist()):
                 detections = None  # a marker was missed: search everywhere

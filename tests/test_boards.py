@@ -656,6 +656,7 @@ class _FixedDetections:
 
     def __init__(self, detector: Detector, frames: list[MarkerDetections]) -> None:
         self.inner = detector
+        self.cells = detector.cells
         self.frames = iter(frames)
 
     def detect(self, image: np.ndarray, camera=None) -> MarkerDetections:

@@ -36,6 +36,52 @@ def test_rotation_filter_learns_a_turn_rate_and_predicts_through_a_gap():
     assert angle_between_deg(rf.rotation, expected) < 1.0
 
 
+def test_two_mode_filter_matches_filterpys_imm_step_by_step():
+    # given filterpy's IMMEstimator over two KalmanFilters, set up as _TwoModeCV's still and moving models
+    from filterpy.kalman import IMMEstimator, KalmanFilter
+
+    from ar_anchor.filtering import _cv_process_noise, _cv_transition, _TwoModeCV
+
+    rng = np.random.default_rng(1)
+    x0 = rng.normal(size=6)
+    a = rng.normal(size=(6, 6))
+    p0 = a @ a.T * 0.01 + np.eye(6) * 1e-3
+    still_sigma, accel = 1e-3, 30.0
+    ours = _TwoModeCV(x0, p0, still_sigma, accel)
+    models = []
+    for _ in range(2):
+        kf = KalmanFilter(dim_x=6, dim_z=3)
+        kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
+        kf.x, kf.P = x0.reshape(6, 1).copy(), p0.copy()
+        models.append(kf)
+    reference = IMMEstimator(models, np.array([0.5, 0.5]), np.array([[0.98, 0.02], [0.02, 0.98]]))
+    # when both run the same predicts (varying dt) and updates (some frames missed; motion starting halfway)
+    moving_seen = []
+    for k in range(60):
+        dt = DT if k % 7 else 2 * DT
+        models[0].F = np.block([[np.eye(3), np.zeros((3, 3))], [np.zeros((3, 3)), np.zeros((3, 3))]])
+        models[0].Q = np.block(
+            [[np.eye(3) * still_sigma**2 * dt, np.zeros((3, 3))], [np.zeros((3, 3)), np.eye(3) * 1e-12]]
+        )
+        models[1].F, models[1].Q = _cv_transition(dt), _cv_process_noise(dt, accel)
+        reference.predict()
+        ours.predict(dt)
+        if k % 5 != 4:
+            z = rng.normal(size=3) * 0.01 + (0.02 * (k - 30) if k > 30 else 0.0)
+            r = np.diag(rng.uniform(0.5e-4, 2e-4, 3))
+            for kf in models:
+                kf.R = r
+            reference.update(z.reshape(3, 1))
+            ours.update(z, r)
+        # then state, covariance and mode probability agree to rounding, every step
+        np.testing.assert_allclose(ours.x, reference.x[:, 0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(ours.P, reference.P, rtol=1e-9, atol=1e-14)
+        assert ours.moving_probability == pytest.approx(reference.mu[1], abs=1e-9)
+        moving_seen.append(ours.moving_probability)
+    # and the comparison exercised both modes
+    assert min(moving_seen) < 0.2 and max(moving_seen) > 0.8
+
+
 def test_rotation_filter_update_moves_toward_the_measurement_by_the_gain():
     rf = RotationFilter(np.eye(3), np.eye(3) * 1e-4, 1e-4, 30.0)
     measured = matrix_from_rvec(np.array([0.01, 0.0, 0.0]))
