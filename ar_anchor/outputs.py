@@ -6,11 +6,12 @@ flushed after every frame, the summary is written to a temporary file and rename
 
 from __future__ import annotations
 
+import array
 import csv
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -158,7 +159,7 @@ def write_json_atomic(path: str | os.PathLike[str], data: Mapping[str, Any]) -> 
         raise OutputError(f"{path}: cannot write ({err.strerror})") from err
 
 
-def _percentiles(values: list[float]) -> dict[str, float | None]:
+def _percentiles(values: Sequence[float]) -> dict[str, float | None]:
     if not values:
         return {"median": None, "p95": None}
     arr = np.asarray(values)
@@ -184,14 +185,16 @@ class RunSummary:
         self.frames_with_pose = 0
         self.targets: dict[str, _TargetStats] = {}
         self.has_truth = False
-        self.latency_ms: dict[str, list[float]] = {}
+        self.latency_ms: dict[str, array.array] = {}  # stage -> ms per frame (8 bytes a value)
 
-    def add(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
+    def add(
+        self, result: FrameResult, truth: Mapping[str, Pose] | None, stages: Mapping[str, float] | None = None
+    ) -> None:
+        """One tracked frame; ``stages``: the run loop's own per-frame times (ms) beside the tracker's."""
         self.frames += 1
         self.frames_with_markers += len(result.detections) > 0
         self.frames_with_pose += any(t.measured for t in result.targets.values())
-        for key, value in result.latency_ms.items():
-            self.latency_ms.setdefault(key, []).append(value)
+        self.add_latency({key: [value] for key, value in {**result.latency_ms, **(stages or {})}.items()})
         if truth is not None:
             self.has_truth = True
             for name in truth:
@@ -209,6 +212,11 @@ class RunSummary:
             rotation, translation = pose_errors(target.pose, true_pose)
             stats.rotation_errors_deg.append(rotation)
             stats.translation_errors_pct.append(translation)
+
+    def add_latency(self, latency_ms: Mapping[str, list[float]]) -> None:
+        """Per-stage times (ms) measured elsewhere (e.g. the output thread's render and log times)."""
+        for key, values in latency_ms.items():
+            self.latency_ms.setdefault(key, array.array("d")).extend(values)
 
     def as_dict(self, wall_time_s: float, **extra: Any) -> dict[str, Any]:
         targets: dict[str, Any] = {}

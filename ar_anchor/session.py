@@ -12,7 +12,7 @@ import logging
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +21,8 @@ from typing import Any
 from .errors import InputError, OutputError
 from .outputs import PosesCsvWriter, RawVideoWriter, RunSummary, write_json_atomic
 from .overlay import OverlayRenderer
-from .sources.base import FrameSource
+from .pipeline import OutputStage, Prefetcher
+from .sources.base import Frame, FrameSource
 from .tracker import FrameResult, Tracker
 from .video_out import SUPPORTED_EXTENSIONS, AnnotatedVideoWriter
 from .viz import RerunRecorder
@@ -83,6 +84,8 @@ class RunOptions:
     video_asset: Path | None = None  # reference this MP4 in the recording instead of JPEG frames
     video_out: Path | None = None  # write the annotated (overlay) video here
     overlays: bool = True  # draw the config's overlays (rerun's camera/overlay and --video-out)
+    decode_queue: int = 4  # frames decoded ahead of the tracker (file and synthetic sources)
+    output_queue: int = 8  # tracked frames waiting for their overlay, video and rerun log
     extra_summary: dict[str, Any] = field(default_factory=dict)
 
 
@@ -133,6 +136,8 @@ def run_session(
     status = "incomplete"
     data: dict[str, Any] = {}
     image_logging = "none"
+    live = bool(getattr(source, "live", False))
+    outputs_stage: OutputStage | None = None
     start = time.perf_counter()
     try:
         with ExitStack() as stack:
@@ -160,21 +165,51 @@ def run_session(
                 video_writer = AnnotatedVideoWriter(options.video_out, fps=options.record_fps)
                 stack.callback(video_writer.close)
                 stack.callback(lambda: extra_counts.update(video_frames=video_writer.frames))
-            guard = stack.enter_context(_InterruptGuard())
-            for frame in source if options.max_frames != 0 else ():
-                result = tracker.process(frame)
-                truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
+
+            def output(frame: Frame, result: FrameResult, stages: dict[str, float]) -> dict[str, float]:
+                """Overlay, --video-out and the rerun log of one frame (in the output thread)."""
+                t0 = time.perf_counter()
                 annotated = None
                 if renderer is not None and (video_writer is not None or recorder.wants_image(frame)):
                     annotated = renderer.annotate(frame.image, result)
+                t1 = time.perf_counter()
+                if video_writer is not None:
+                    video_writer.write(annotated)
+                recorder.log_frame(frame, result, annotated, stages=stages)
+                t2 = time.perf_counter()
+                measured = {"render_ms": (t1 - t0) * 1e3, "log_ms": (t2 - t1) * 1e3}
+                recorder.log_latency(measured)
+                return measured
+
+            # closed first (callbacks run last-in first-out): the queued frames reach the recorder and the
+            # video before those close
+            outputs_stage = OutputStage(output, depth=options.output_queue)
+            stack.callback(outputs_stage.close)
+            frames: Iterable[tuple[Frame, float | None]]
+            if live or options.max_frames == 0:
+                frames = ((frame, None) for frame in (source if options.max_frames != 0 else ()))
+            else:
+                prefetcher = Prefetcher(source, depth=options.decode_queue)
+                stack.callback(prefetcher.close)
+                frames = prefetcher
+            guard = stack.enter_context(_InterruptGuard())
+            for frame, decode_ms in frames:
+                began_ns = time.monotonic_ns()
+                result = tracker.process(frame)
+                tracked_ns = time.monotonic_ns()
+                stages = {} if decode_ms is None else {"decode_ms": decode_ms}
+                if frame.arrived_ns is not None:
+                    stages["wait_ms"] = (began_ns - frame.arrived_ns) * 1e-6
+                    stages["capture_to_pose_ms"] = (tracked_ns - frame.arrived_ns) * 1e-6
+                truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
                 with guard.critical():
                     if raw_writer is not None:
                         raw_writer.write(frame.image, frame.index, frame.timestamp_ns)
-                    if video_writer is not None:
-                        video_writer.write(annotated)
                     csv_writer.write(result)
-                    recorder.log_frame(frame, result, annotated)
-                    summary.add(result, truth)
+                    summary.add(result, truth, stages)
+                    # live: the tracker never waits for the rerun log (a frame it cannot take is not logged),
+                    # unless --video-out asks for a video of every tracked frame
+                    outputs_stage.submit(frame, result, stages, block=not live or video_writer is not None)
                 if progress is not None:
                     progress(summary.frames, total, result)
                 if options.max_frames is not None and summary.frames >= options.max_frames:
@@ -191,6 +226,16 @@ def run_session(
         extras = dict(options.extra_summary)
         if options.video_out is not None:
             extras["video_out"] = {"path": str(options.video_out), "frames": extra_counts.get("video_frames", 0)}
+        if outputs_stage is not None:
+            summary.add_latency(outputs_stage.latency_ms)
+            extras["frames_logged"] = outputs_stage.done
+            if outputs_stage.skipped:
+                extras["frames_not_logged"] = outputs_stage.skipped
+                log.warning(
+                    "%d frame(s) tracked but not logged or drawn: the outputs could not keep up (live mode "
+                    "never makes the tracker wait); they are in poses.csv",
+                    outputs_stage.skipped,
+                )
         if summary_extras is not None:
             extras.update(summary_extras())
         data = summary.as_dict(wall, status=status, image_logging=image_logging, **extras)

@@ -214,9 +214,16 @@ class RerunRecorder:
         every = self.settings.image_every
         return bool(every) and frame.index % every == 0
 
-    def log_frame(self, frame: Frame, result: FrameResult, overlay: np.ndarray | None = None) -> None:
+    def log_frame(
+        self,
+        frame: Frame,
+        result: FrameResult,
+        overlay: np.ndarray | None = None,
+        stages: Mapping[str, float] | None = None,
+    ) -> None:
         """Log one frame: the image (or its video reference), detections, the 3D scene, metrics, and
-        ``overlay`` (the annotated image, when given) under ``camera/overlay``."""
+        ``overlay`` (the annotated image, when given) under ``camera/overlay``. ``stages``: the run
+        loop's per-frame times (ms) beside the tracker's own, all under ``metrics/latency/``."""
         rec = self.rec
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("time", duration=frame.timestamp_ns * 1e-9)
@@ -231,8 +238,12 @@ class RerunRecorder:
             self._log_jpeg("camera/overlay", overlay)
         self._log_detections(result, scale)
         self._log_world(result, frame.truth)
-        for stage, ms in result.latency_ms.items():
-            rec.log(f"metrics/latency/{stage.removesuffix('_ms')}", rr.Scalars(ms))
+        self.log_latency({**result.latency_ms, **(stages or {})})
+
+    def log_latency(self, stages: Mapping[str, float]) -> None:
+        """Per-stage times (ms) of the current frame, as ``metrics/latency/<stage>``."""
+        for stage, ms in stages.items():
+            self.rec.log(f"metrics/latency/{stage.removesuffix('_ms')}", rr.Scalars(ms))
 
     def _log_jpeg(self, path: str, image: np.ndarray) -> None:
         """``image`` at the recording's ``image_scale`` and JPEG quality, under ``path``."""

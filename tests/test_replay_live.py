@@ -247,6 +247,20 @@ def get_replay(replays, kind: str) -> tuple[subprocess.CompletedProcess[str], Pa
     return result, out
 
 
+def test_replay_times_every_stage_and_logs_every_frame(replays):
+    # given a replay (decode, track and outputs in their own threads)
+    _, out = get_replay(replays, "png")
+    summary = read_summary(out)
+    # then every stage's time per frame is reported, from decoding to the rerun log
+    stages = {"decode_ms", "wait_ms", "detect_ms", "pose_ms", "filter_ms", "capture_to_pose_ms", "render_ms", "log_ms"}
+    assert stages <= set(summary["latency_ms"])
+    latency = summary["latency_ms"]
+    assert 0 < latency["detect_ms"]["median"] <= latency["capture_to_pose_ms"]["median"]
+    # and nothing was skipped: replay waits for its outputs
+    assert summary["frames_logged"] == summary["frames"]
+    assert "frames_not_logged" not in summary
+
+
 # ============================================================================ 1. replay accuracy
 
 

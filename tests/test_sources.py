@@ -16,7 +16,7 @@ from ar_anchor.errors import SourceError
 from ar_anchor.sources import ImageFolderSource, VideoFileSource, open_file_source
 from ar_anchor.sources.files import natural_key, to_bgr8
 from ar_anchor.sources.live import Captured, LiveSource, SyntheticGrabber, WebcamGrabber
-from ar_anchor.sources.synthetic import demo_scene
+from ar_anchor.sources.synthetic import SyntheticSource, demo_scene
 
 
 def small_scene(frames: int = 12, fps: float = 30.0):
@@ -265,6 +265,24 @@ def test_synthetic_camera_runs_in_real_time_and_skips_frames_it_is_late_for():
     assert np.median(np.diff(stamps)) > 40e6
     assert source.stats.dropped_queue > 0
     assert all(frame.truth for frame in frames)
+
+
+def test_synthetic_camera_plays_its_rendered_clip_forth_and_back_with_the_truth_of_each_frame():
+    # given a synthetic camera that renders a 5-frame clip when it opens
+    scene = small_scene(frames=40, fps=30.0)
+    grabber = SyntheticGrabber(scene, cached=5)
+    assert grabber.open() == scene.camera.size
+    # then slots run over the clip forth and back: 0 1 2 3 4 3 2 1 0 1 ...
+    assert [grabber._clip_index(slot) for slot in range(10)] == [0, 1, 2, 3, 4, 3, 2, 1, 0, 1]
+    # and each delivered image is the rendered frame (JPEG 95: within a few grey levels) with its own truth
+    source = SyntheticSource(scene)
+    captured = grabber.read()
+    expected = source.frame(0)
+    assert captured.truth.keys() == expected.truth.keys()
+    assert np.abs(captured.image.astype(int) - expected.image).mean() < 2.0
+    last = source.frame(scene.frames - 1)
+    jpeg, truth = grabber._clip[4]
+    assert all(np.allclose(truth[k].tvec, last.truth[k].tvec) for k in truth)
 
 
 def test_close_stops_the_capture_thread():

@@ -28,12 +28,15 @@ class Frame:
         video, synthetic clock for renders).
     truth : ground truth ``camera_from_target`` per target name (``marker:<id>``,
         ``board:<name>``) for targets in view, when the source knows it (synthetic renders).
+    arrived_ns : ``time.monotonic_ns()`` when the frame was ready for the tracker (delivered by the
+        device, or decoded), for latency measurements; None when nobody stamped it.
     """
 
     image: np.ndarray
     index: int
     timestamp_ns: int
     truth: Mapping[str, Pose] | None = field(default=None)
+    arrived_ns: int | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         image = self.image

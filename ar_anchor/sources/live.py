@@ -80,7 +80,8 @@ class LiveStats:
 
 
 class LiveSource:
-    """A :class:`~ar_anchor.sources.base.FrameSource` fed by a capture thread.
+    """A :class:`~ar_anchor.sources.base.FrameSource` fed by a capture thread (``live``: the run loop
+    must not make it wait; it hands over the newest frame itself, so it is not prefetched).
 
     Parameters
     ----------
@@ -90,6 +91,8 @@ class LiveSource:
     stall_s : how long the consumer waits for a frame before it gives up on the device.
     camera : the device's own calibration when it has one (synthetic), else None.
     """
+
+    live = True
 
     def __init__(
         self,
@@ -175,7 +178,7 @@ class LiveSource:
                         self.stats.dropped_non_monotonic += 1
                     continue
                 last_ns = captured.timestamp_ns
-                frame = Frame(captured.image, index, captured.timestamp_ns, captured.truth)
+                frame = Frame(captured.image, index, captured.timestamp_ns, captured.truth, time.monotonic_ns())
                 index += 1
                 with self._cond:
                     if len(self._buffer) >= self.queue_size:
@@ -328,24 +331,53 @@ class WebcamGrabber:
 
 
 class SyntheticGrabber:
-    """The synthetic scene as a camera: frame ``k`` is shown at ``start + k / fps`` in real time.
+    """The synthetic scene as a camera: a frame is due every ``1 / fps`` seconds of real time.
 
-    If rendering is slower than the frame rate, frames whose time has passed are skipped, as a
-    real camera's would be: the camera does not wait for anybody.
+    Rendering a frame with its supersampled markers and sensor noise takes 70-170 ms (720p-1080p),
+    far longer than a camera's frame period, and in this process it would take the GIL from the
+    tracker it is meant to feed. So the camera's clip is rendered once when it opens (``cached``
+    frames, evenly spread over the scene, played forth and back so that the motion never jumps),
+    held as JPEG (quality 95, as an MJPEG webcam delivers it) and decoded when due, which releases the
+    GIL like a real capture does. ``cached=0`` renders every frame when due instead (slow: frames
+    whose time has passed are skipped, as a real camera's would be).
     """
 
     name = "synthetic"
 
-    def __init__(self, scene: SyntheticScene, *, loop: bool = True) -> None:
+    def __init__(self, scene: SyntheticScene, *, loop: bool = True, cached: int = 60) -> None:
         self.source = SyntheticSource(scene)
         self.scene = scene
         self.loop = loop
+        self.cached = min(max(int(cached), 0), scene.frames)
+        self._clip: list[tuple[bytes, Mapping[str, Pose] | None]] = []
         self._start_ns: int | None = None
         self._next_slot = 0
 
     def open(self) -> tuple[int, int]:
         self._start_ns = None
+        self._next_slot = 0
+        if self.cached >= 2 and not self._clip:
+            log.info("synthetic camera: rendering its %d-frame clip", self.cached)
+            for k in range(self.cached):
+                index = round(k * (self.scene.frames - 1) / (self.cached - 1))
+                frame = self.source.frame(index)
+                ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+                if not ok:
+                    raise SourceError("synthetic camera: cannot encode its frames")
+                self._clip.append((jpeg.tobytes(), frame.truth))
         return self.scene.camera.size
+
+    def _frames(self) -> int:
+        return len(self._clip) if self._clip else max(self.scene.frames, 1)
+
+    def _clip_index(self, slot: int) -> int:
+        """Slot -> clip frame: forth and back over a cached clip, around a rendered one."""
+        frames = self._frames()
+        if not self._clip or frames < 2:
+            return slot % frames
+        period = 2 * (frames - 1)
+        phase = slot % period
+        return phase if phase < frames else period - phase
 
     def read(self) -> Captured | None:
         now = time.monotonic_ns()
@@ -357,12 +389,17 @@ class SyntheticGrabber:
         if due > now:
             time.sleep((due - now) * 1e-9)
         self._next_slot = slot + 1
-        frames = max(self.scene.frames, 1)
-        if not self.loop and slot >= frames:
+        if not self.loop and slot >= self._frames():
             time.sleep(0.05)
             return None  # the clip is over: like an unplugged camera
-        frame = self.source.frame(slot % frames)
-        return Captured(frame.image, max(due, now), frame.truth)
+        index = self._clip_index(slot)
+        if self._clip:
+            jpeg, truth = self._clip[index]
+            image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        else:
+            frame = self.source.frame(index)
+            image, truth = frame.image, frame.truth
+        return Captured(image, max(due, time.monotonic_ns()), truth)
 
     def close(self) -> None:
         pass
