@@ -230,11 +230,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument(
         "name",
-        choices=("stability", "boards", "overlay", "speed"),
+        choices=("stability", "boards", "overlay", "speed", "run"),
         help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
-        "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop",
+        "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop; "
+        "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p",
     )
     bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
+    bench.add_argument(
+        "--minutes",
+        type=_non_negative_float,
+        default=None,
+        help="run: length of the live run whose memory is watched (default 10; 0: skip; --quick: 0)",
+    )
     bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
     bench.add_argument(
         "--out", type=Path, default=Path("bench") / "results", help="output directory (default bench/results)"
@@ -598,7 +605,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
 
-    if args.name == "speed":
+    if args.name == "run":
+        from .bench_run import write_run_report
+
+        if args.minutes is not None:
+            command += f" --minutes {args.minutes:g}"
+        write_run_report(args.out, quick=args.quick, minutes=args.minutes, progress=progress, command=command)
+    elif args.name == "speed":
         from .bench_speed import write_speed_report
 
         write_speed_report(args.out, quick=args.quick, progress=progress, command=command)
