@@ -217,10 +217,15 @@ class Detector:
         return self._clean(ids[keep], corners[keep])
 
     def _region_detector(self, cell_px: float) -> cv2.aruco.ArucoDetector:
-        """A detector for a region whose marker cells are about ``cell_px`` wide (after its scale): the
-        full-frame detector's parameters, but one adaptive-threshold window (about two cells) instead of
-        the three sizes a full-frame search must try, since the marker's size is known. A third less time."""
-        window = 13 if cell_px < 8.0 else 23
+        """A detector for a region whose marker cells are about ``cell_px`` wide (after its scale): for
+        cells of 8 px and more, the full-frame detector's parameters but one adaptive-threshold window
+        (23 px, two to three cells) instead of the three sizes a full-frame search must try, since the
+        marker's size is known (a third less time); for smaller cells, the full-frame detector."""
+        if cell_px < 8.0:
+            # small cells: one window can outline a far marker a pixel or two off (the edge fit cannot
+            # move a small marker's corners that far), so the full-frame detector's three windows it is
+            return self._detector
+        window = 23
         detector = self._region_detectors.get(window)
         if detector is None:
             params = cv2.aruco.DetectorParameters()
