@@ -41,6 +41,8 @@ SIZE = (1920, 1080)
 FX = 1480.0
 LIVE_FPS = 30.0
 WARMUP_S = 60.0
+# the live scene of one 5 cm marker (the synthetic camera renders what the config tracks)
+ONE_MARKER_CONFIG = "[markers]\nlength_m = 0.05\nids = [0]\n"
 SAMPLE_S = 5.0
 
 
@@ -115,14 +117,19 @@ def _replay(tmp: Path, frames: int) -> dict[str, Any]:
     }
 
 
-def _live(tmp: Path, seconds: float, name: str) -> dict[str, Any]:
-    """A live synthetic 1080p run for ``seconds`` after the camera opened, then SIGINT."""
+def _live(tmp: Path, seconds: float, name: str, config: str | None = None) -> dict[str, Any]:
+    """A live synthetic 1080p run for ``seconds`` after the camera opened, then SIGINT. ``config``: a
+    tracker TOML (the synthetic scene holds the markers and boards it names)."""
     out = tmp / name
     width, height = SIZE
     command = _cli(
         "live", "--device", "synthetic", "--width", str(width), "--height", str(height), "--fps", str(LIVE_FPS)
     )
     command += ["--out", str(out)]
+    if config is not None:
+        path = tmp / f"{name}.toml"
+        path.write_text(config)
+        command += ["--config", str(path)]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     samples: list[tuple[float, float]] = []
     started: float | None = None
@@ -179,7 +186,7 @@ def run_run_benchmark(
 ) -> dict[str, Any]:
     """Replay throughput, live latency and (when ``minutes`` > 0) memory over a long live run."""
     results: dict[str, Any] = {"meta": _machine()}
-    steps = ["replay", "live latency"] + (["memory"] if minutes > 0 else [])
+    steps = ["replay", "live latency", "live latency, one marker"] + (["memory"] if minutes > 0 else [])
     with tempfile.TemporaryDirectory(prefix="ar_anchor_bench_run_") as name:
         tmp = Path(name)
         if progress:
@@ -188,9 +195,12 @@ def run_run_benchmark(
         if progress:
             progress(1, len(steps), f"live synthetic 1080p for {live_seconds:g} s")
         results["live"] = _live(tmp, live_seconds, "live")
+        if progress:
+            progress(2, len(steps), f"live synthetic 1080p, one marker, for {live_seconds:g} s")
+        results["live_one"] = _live(tmp, live_seconds, "live_one", ONE_MARKER_CONFIG)
         if minutes > 0:
             if progress:
-                progress(2, len(steps), f"live synthetic 1080p for {minutes:g} min (memory)")
+                progress(3, len(steps), f"live synthetic 1080p for {minutes:g} min (memory)")
             long_run = _live(tmp, minutes * 60.0, "long")
             results["long_live"] = {k: v for k, v in long_run.items() if k != "rss_mb"}
             results["long_live"]["rss_mb"] = [[round(t, 1), round(rss, 1)] for t, rss in long_run["rss_mb"]]
@@ -223,17 +233,30 @@ def run_markdown(results: dict[str, Any], command: str) -> str:
         "",
         "## Live: `ar-anchor live --device synthetic --width 1920 --height 1080 --fps 30`",
         "",
-        f"{live['seconds']:g} s of frames, then SIGINT (exit {live['exit_code']}, status `{live['status']}`): "
-        f"{live['frames']} frames tracked ({_f(live['fps'], 1)} fps), "
-        f"{live['live'].get('dropped_queue', 0)} dropped by the camera queue (tracker busy), "
-        f"{live['frames_not_logged']} tracked but not logged (logger busy).",
+        "Two scenes: the default one (lone markers 0 and 7 and the 2x2 board `desk`: seven targets) and one "
+        "5 cm marker (the same command with `--config` holding `[markers] ids = [0]`). Each runs "
+        f"{live['seconds']:g} s, then gets SIGINT.",
         "",
-        "| stage | median ms | p95 ms |",
+        "| | default scene (7 targets) | one marker |",
         "|---|---|---|",
     ]
-    for stage, values in live["stages"].items():
+    one = results["live_one"]
+    lines.append(f"| exit code, status | {live['exit_code']}, {live['status']} | {one['exit_code']}, {one['status']} |")
+    lines.append(
+        f"| frames tracked (fps) | {live['frames']} ({_f(live['fps'], 1)}) | {one['frames']} ({_f(one['fps'], 1)}) |"
+    )
+    lines.append(
+        f"| dropped by the camera queue (tracker busy) | {live['live'].get('dropped_queue', 0)} | "
+        f"{one['live'].get('dropped_queue', 0)} |"
+    )
+    lines.append(f"| tracked but not logged (logger busy) | {live['frames_not_logged']} | {one['frames_not_logged']} |")
+    for stage in live["stages"]:
         name = f"**{stage}**" if stage == "capture_to_pose" else stage
-        lines.append(f"| {name} | {_f(values['median'])} | {_f(values['p95'])} |")
+        a, b = live["stages"][stage], one["stages"].get(stage, {})
+        lines.append(
+            f"| {name} ms, median / p95 | {_f(a.get('median'))} / {_f(a.get('p95'))} | "
+            f"{_f(b.get('median'))} / {_f(b.get('p95'))} |"
+        )
     lines += [
         "",
         "*capture_to_pose*: from the frame's arrival (the device delivered it) to its pose (detect + pose + "
