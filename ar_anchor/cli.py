@@ -301,6 +301,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--duration-s", type=_positive_float, default=60.0, help="device: stop capturing after this long (default 60)"
     )
     calibrate.set_defaults(func=cmd_calibrate)
+    study = _add_command(
+        commands,
+        "study",
+        "reproduce the PnP textbook's experiments: outliers, ransac, jitter",
+        "Each study writes NAME.png, NAME.md, NAME.json and NAME.rrd to --out (default recordings/study/).",
+    )
+    from .study import configure_parser as configure_study
+
+    configure_study(study)
+    study.set_defaults(func=cmd_study)
     return parser
 
 
@@ -624,6 +634,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         write_stability_report(args.out, quick=args.quick, config=config, progress=progress, command=command)
     print(f"results: {args.out / (args.name + '.md')} and {args.out / (args.name + '.json')}")
     return EXIT_OK
+
+
+def cmd_study(args: argparse.Namespace) -> int:
+    from .study import run_study
+
+    return run_study(args)
 
 
 def cmd_markers(args: argparse.Namespace) -> int:
