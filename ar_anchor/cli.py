@@ -713,12 +713,14 @@ def _interrupt_on_sigterm() -> None:
 
 
 def _quiet_opencv(verbosity: int) -> None:
-    """OpenCV and FFmpeg print their own warnings to stderr; ours say what matters, in one line.
+    """OpenCV, FFmpeg and rerun print their own warnings to stderr; ours say what matters, in one line.
     Theirs show with -vv."""
     if verbosity >= 2:
         return
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET, read when a capture opens
     os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    # rerun's own (Rust) log lines, e.g. a file sink that hit a full disk: the error we raise names the file
+    os.environ.setdefault("RUST_LOG", "off")
     import cv2
 
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)

@@ -28,6 +28,7 @@ import logging
 import math
 import os
 import sys
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,7 @@ log = logging.getLogger(__name__)
 _STATE_COLOURS = {"tracked": (40, 220, 80), "ambiguous": (250, 190, 30), "predicted": (120, 120, 255)}
 _FAILED_COLOUR = (255, 60, 60)
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
+_SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
 
 
 def entity_name(target: str) -> str:
@@ -138,6 +140,7 @@ class RerunRecorder:
         self._video_frame_ns: np.ndarray | None = None
         self._states: dict[str, str] = {}
         self._trajectory: list[np.ndarray] = []
+        self._last_check = time.monotonic()
         # target -> its overlay models in the target frame (set by the session when it draws overlays)
         self.overlay_models: Callable[[TargetResult], list[Any]] | None = None
         self._log_static_camera(camera)
@@ -239,6 +242,20 @@ class RerunRecorder:
         self._log_detections(result, scale)
         self._log_world(result, frame.truth)
         self.log_latency({**result.latency_ms, **(stages or {})})
+        now = time.monotonic()
+        if now - self._last_check >= _SINK_CHECK_S:
+            self._last_check = now
+            self._flush(timeout_s=10.0)  # a sink that died (disk full) fails the run now, not at its end
+
+    def _flush(self, timeout_s: float) -> None:
+        """Flush the sinks; a file sink that could not write (disk full, file too large) is an OutputError."""
+        try:
+            self.rec.flush(timeout_sec=timeout_s)
+        except RuntimeError as err:
+            where = self.rrd_path if self.rrd_path is not None else "the rerun viewer"
+            raise OutputError(
+                f"{where}: cannot write the recording ({err}; disk full?); it holds the frames logged before"
+            ) from None
 
     def log_latency(self, stages: Mapping[str, float]) -> None:
         """Per-stage times (ms) of the current frame, as ``metrics/latency/<stage>``."""
@@ -384,7 +401,7 @@ class RerunRecorder:
         The flush is bounded: a viewer that went away must not hang the end of a run.
         """
         try:
-            self.rec.flush(timeout_sec=timeout_s)
+            self._flush(timeout_s)
         finally:
             self.rec.disconnect()
 
