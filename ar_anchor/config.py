@@ -250,6 +250,7 @@ class RecordingConfig:
     image_every: int = 1
     image_scale: float = 1.0
     jpeg_quality: int = 80
+    part_minutes: float = 0.5  # a long run's recording is split into parts this long (0: one file)
 
 
 OVERLAY_KINDS = ("cube", "mesh", "axes")
@@ -628,6 +629,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         image_every=rc.take("image_every", int, defaults.recording.image_every, _in_range(0, 10_000)),
         image_scale=rc.take("image_scale", float, defaults.recording.image_scale, _in_range(0.05, 1.0)),
         jpeg_quality=rc.take("jpeg_quality", int, defaults.recording.jpeg_quality, _in_range(1, 100)),
+        part_minutes=rc.take("part_minutes", float, defaults.recording.part_minutes, _in_range(0.0, 1e6)),
     )
     rc.done()
     overlays = _parse_overlays(root, path, defaults)

@@ -50,9 +50,17 @@ class _InterruptGuard:
                 self._previous[signum] = signal.signal(signum, self._handle)
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
+        if self._pending is not None and exc_type is None:
+            signum, self._pending = self._pending, None
+            raise KeyboardInterrupt(f"signal {signum}")
+
+    def hold(self) -> None:
+        """From now on (closing the outputs), hold signals until the guard exits: a late Ctrl-C must not
+        cut the flush of a recording or the last frames of a video."""
+        self._critical = True
 
     def _handle(self, signum: int, _frame: object) -> None:
         if self._critical:
@@ -147,6 +155,7 @@ def run_session(
     start = time.perf_counter()
     try:
         with ExitStack() as stack:
+            guard = stack.enter_context(_InterruptGuard())  # exited last: after every output is closed
             recorder = RerunRecorder(
                 recording_rrd,
                 camera=tracker.camera,
@@ -156,6 +165,7 @@ def run_session(
                 recording_name=options.recording_name,
             )
             stack.callback(recorder.close)
+            stack.callback(lambda: extra_counts.update(recording_parts=[p.name for p in recorder.parts]))
             if renderer is not None:
                 recorder.overlay_models = renderer.models_for
             image_logging = "jpeg"
@@ -198,7 +208,7 @@ def run_session(
                 prefetcher = Prefetcher(source, depth=options.decode_queue)
                 stack.callback(prefetcher.close)
                 frames = prefetcher
-            guard = stack.enter_context(_InterruptGuard())
+            stack.callback(guard.hold)  # runs first when the block ends: the closing is not interrupted
             for frame, decode_ms in frames:
                 began_ns = time.monotonic_ns()
                 result = tracker.process(frame)
@@ -233,6 +243,8 @@ def run_session(
         extras = dict(options.extra_summary)
         if options.video_out is not None:
             extras["video_out"] = {"path": str(options.video_out), "frames": extra_counts.get("video_frames", 0)}
+        if len(extra_counts.get("recording_parts", ())) > 1:
+            extras["recording_parts"] = extra_counts["recording_parts"]  # open together: rerun recording*.rrd
         if outputs_stage is not None:
             summary.add_latency(outputs_stage.latency_ms)
             extras["frames_logged"] = outputs_stage.done

@@ -120,30 +120,60 @@ class RerunRecorder:
         self.settings = settings or RecordingConfig()
         self.camera = camera
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
+        self._viewer: rr.GrpcSink | None = None
+        if connect is not None:
+            self._viewer = rr.GrpcSink(connect)
+        elif spawn and self._spawn_viewer():
+            self._viewer = rr.GrpcSink()
         self.rec = rr.RecordingStream("ar_anchor")
-        sinks: list[rr.FileSink | rr.GrpcSink] = []
+        self.parts: list[Path] = []  # the recording's files, in order (see part_minutes)
+        self._part_started = time.monotonic()
         if self.rrd_path is not None:
             try:
                 self.rrd_path.touch()
             except OSError as err:
                 raise OutputError(f"{self.rrd_path}: cannot write ({err.strerror})") from err
-            sinks.append(rr.FileSink(str(self.rrd_path)))
-        if connect is not None:
-            sinks.append(rr.GrpcSink(connect))
-        elif spawn and self._spawn_viewer():
-            sinks.append(rr.GrpcSink())
-        if sinks:
-            self.rec.set_sinks(*sinks, default_blueprint=default_blueprint())
+            self.parts.append(self.rrd_path)
+        self._set_sinks()
+        self._recording_name = recording_name
         self.rec.send_recording_name(recording_name)
         self.anchor: str | None = None
         self._static_targets: set[str] = set()
         self._video_frame_ns: np.ndarray | None = None
+        self._video_asset: rr.AssetVideo | None = None
         self._states: dict[str, str] = {}
         self._trajectory: list[np.ndarray] = []
         self._last_check = time.monotonic()
         # target -> its overlay models in the target frame (set by the session when it draws overlays)
         self.overlay_models: Callable[[TargetResult], list[Any]] | None = None
         self._log_static_camera(camera)
+
+    def _set_sinks(self) -> None:
+        sinks: list[rr.FileSink | rr.GrpcSink] = [rr.FileSink(str(self.parts[-1]))] if self.parts else []
+        if self._viewer is not None:
+            sinks.append(self._viewer)
+        if sinks:
+            self.rec.set_sinks(*sinks, default_blueprint=default_blueprint())
+
+    def _next_part(self) -> None:
+        """Close the current file and go on in ``recording.partN.rrd``: the same recording (open the parts
+        together: ``rerun recording*.rrd``), each file complete, with the static scene logged again so a
+        part also opens alone. Bounds the file writer's memory on long runs (see ``part_minutes``)."""
+        assert self.rrd_path is not None
+        self._flush(timeout_s=30.0)
+        path = self.rrd_path.with_name(f"{self.rrd_path.stem}.part{len(self.parts) + 1}{self.rrd_path.suffix}")
+        try:
+            path.touch()
+        except OSError as err:
+            raise OutputError(f"{path}: cannot write ({err.strerror})") from err
+        self.parts.append(path)
+        self._set_sinks()
+        self._part_started = time.monotonic()
+        self.rec.send_recording_name(self._recording_name)
+        self._log_static_camera(self.camera)
+        self._static_targets.clear()  # each target's static shape (the anchor's too) goes into the new part when seen
+        if self._video_asset is not None:
+            self.rec.log("camera/image", self._video_asset, static=True)
 
     def _spawn_viewer(self) -> bool:
         """Start a rerun viewer (the one installed beside this Python first); warn and go on without it."""
@@ -180,6 +210,7 @@ class RerunRecorder:
             log.info("%s: rerun sees %d frames, OpenCV %s; logging JPEG frames", path, frame_ns.size, expected_frames)
             return False
         self.rec.log("camera/image", asset, static=True)
+        self._video_asset = asset
         self._video_frame_ns = frame_ns
         return True
 
@@ -227,6 +258,9 @@ class RerunRecorder:
         """Log one frame: the image (or its video reference), detections, the 3D scene, metrics, and
         ``overlay`` (the annotated image, when given) under ``camera/overlay``. ``stages``: the run
         loop's per-frame times (ms) beside the tracker's own, all under ``metrics/latency/``."""
+        part_s = 60.0 * self.settings.part_minutes
+        if self.parts and part_s > 0 and time.monotonic() - self._part_started >= part_s:
+            self._next_part()
         rec = self.rec
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("time", duration=frame.timestamp_ns * 1e-9)
@@ -303,20 +337,21 @@ class RerunRecorder:
             self.rec.log(f"{path}/outliers", rr.Points2D(to_rerun(outliers), radii=[3.5], colors=[(255, 40, 40)]))
 
     def _choose_anchor(self, result: FrameResult) -> None:
-        if self.anchor is not None or not result.targets:
+        """The first target seen (boards first) anchors the 3D view, for the whole run; its static shape
+        is logged once per recording part."""
+        if self.anchor is None and result.targets:
+            self.anchor = sorted(result.targets, key=lambda n: (not n.startswith("board:"), len(n), n))[0]
+            log.info("rerun 3D view anchored on %s", self.anchor)
+        if self.anchor is None or self.anchor in self._static_targets or self.anchor not in result.targets:
             return
-        names = sorted(result.targets, key=lambda n: (not n.startswith("board:"), len(n), n))
-        self.anchor = names[0]
-        anchor = result.targets[self.anchor]
         up = (
             rr.ViewCoordinates.RIGHT_HAND_Y_DOWN
             if self.anchor.startswith("board:")
             else rr.ViewCoordinates.RIGHT_HAND_Y_UP
         )
         self.rec.log("world", up, static=True)
-        self._log_static_target(self.anchor, anchor, is_anchor=True)
+        self._log_static_target(self.anchor, result.targets[self.anchor], is_anchor=True)
         self._static_targets.add(self.anchor)
-        log.info("rerun 3D view anchored on %s", self.anchor)
 
     def _log_world(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
         rec = self.rec

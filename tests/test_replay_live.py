@@ -577,3 +577,18 @@ def test_sigint_during_live_record_leaves_complete_outputs(tmp_path):
     assert len(stamps) == summary["frames"] > 10
     rows = read_poses(out / "poses.csv")
     assert sorted({int(r["frame"]) for r in rows}) == [int(s["frame"]) for s in stamps]
+
+
+def test_a_long_run_is_recorded_in_parts_that_each_verify(tmp_path):
+    # given a live run whose recording is split every 1.2 s (part_minutes 0.02)
+    (tmp_path / "parts.toml").write_text("[recording]\npart_minutes = 0.02\n")
+    args = ["-q", "live", "--device", "synthetic", "--width", "320", "--height", "180", "--max-frames", "120"]
+    result = run_cli([*args, "--config", "parts.toml", "--out", "out"], tmp_path)
+    assert result.returncode == 0, describe(result)
+    assert_no_traceback(result)
+    # then the recording is recording.rrd, recording.part2.rrd, ... in the summary, each a complete file
+    parts = read_summary(tmp_path / "out")["recording_parts"]
+    assert parts[:2] == ["recording.rrd", "recording.part2.rrd"] and len(parts) >= 3
+    assert sorted(p.name for p in (tmp_path / "out").glob("recording*.rrd")) == sorted(parts)
+    for name in parts:
+        verify_rrd(tmp_path / "out" / name)
