@@ -67,7 +67,7 @@ def _encode_clip(path: Path, frames: int) -> None:
             for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
                 container.mux(packet)
 
-        render_clip(scene, on_frame=encode)
+        render_clip(scene, on_frame=encode, keep=False)
         for packet in stream.encode():
             container.mux(packet)
 
