@@ -2,26 +2,80 @@
 
 Files are OpenCV FileStorage YAML with the keys OpenCV's calibration sample writes:
 ``camera_matrix`` (3x3), ``distortion_coefficients`` (1xN, N in 4, 5, 8, 12, 14),
-``image_width``, ``image_height``.
+``image_width``, ``image_height``. ROS ``camera_info`` YAML (``camera_calibration``'s output) has the
+same keys with ``rows``/``cols``/``data`` maps in place of ``!!opencv-matrix``; it is read too, for the
+distortion models OpenCV's pinhole model is (``plumb_bob``, ``rational_polynomial``).
 """
 
 from __future__ import annotations
 
+import gzip
+import io
 import logging
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .errors import CameraError
+from .errors import CameraError, OutputError
 
 __all__ = ["CameraModel"]
 
 log = logging.getLogger(__name__)
 
 _DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
+# ROS camera_info distortion models that are OpenCV's pinhole model (others, e.g. equidistant, are not)
+_ROS_DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
+
+# OpenCV's FileStorage parsers (YAML, JSON, XML) recurse once per nesting level and overflow the C
+# stack (a segmentation fault, not an exception) somewhere past 20000 levels; real files nest a few.
+MAX_NESTING = 1000
+_OPENERS = re.compile(rb"[\[{]|[\]}]|</|/>|<[A-Za-z_]")
+_MAX_DECOMPRESSED = 64 * 1024 * 1024
+_ONE_CHANNEL_DT = re.compile(r"1?[ucwsifdh]")  # OpenCV's element types (uchar ... double, half)
+
+
+def opencv_path_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why OpenCV cannot be given this path, or None.
+
+    OpenCV's Python bindings crash the process (a segmentation fault) on a ``str`` that is not valid
+    UTF-8, which is how Python spells a file name with bytes that are not UTF-8 (``surrogateescape``).
+    """
+    try:
+        os.fspath(path).encode("utf-8")
+    except UnicodeEncodeError:
+        return "the file name is not UTF-8 text, which OpenCV cannot open; rename the file"
+    return None
+
+
+def filestorage_nesting_problem(data: bytes, path: Path) -> str | None:
+    """Why ``data`` (a file's bytes) must not reach ``cv2.FileStorage``, or None.
+
+    Counts flow brackets and XML tags, and runs of block indentation or ``-`` indicators, which bound
+    how deep the parser would recurse. A ``.gz`` file (FileStorage decompresses it) is checked
+    decompressed, up to 64 MB.
+    """
+    if path.suffix.lower() == ".gz":
+        try:
+            with gzip.GzipFile(fileobj=io.BytesIO(data)) as stream:
+                data = stream.read(_MAX_DECOMPRESSED + 1)
+        except (OSError, EOFError) as err:
+            return f"not a readable gzip file ({err})"
+        if len(data) > _MAX_DECOMPRESSED:
+            return f"decompresses to more than {_MAX_DECOMPRESSED // 2**20} MB"
+    depth = deepest = 0
+    for match in _OPENERS.finditer(data):
+        if match.group() in (b"]", b"}", b"</", b"/>"):
+            depth = max(depth - 1, 0)
+        else:
+            depth += 1
+            deepest = max(deepest, depth)
+    if deepest > MAX_NESTING or re.search(rb"[ \t?-]{%d,}" % MAX_NESTING, data):
+        return f"nested or indented more than {MAX_NESTING} levels deep"
+    return None
 
 
 @dataclass(frozen=True)
@@ -87,12 +141,18 @@ class CameraModel:
         path = Path(path)
         if not path.is_file():
             raise CameraError(f"camera file {path}: not found")
+        problem = opencv_path_problem(path)
+        if problem is not None:
+            raise CameraError(f"camera file {path}: {problem}")
         try:
             text = path.read_bytes()
         except OSError as err:
             raise CameraError(f"camera file {path}: cannot read ({err.strerror})") from err
         if not text.strip():
             raise CameraError(f"camera file {path}: file is empty")
+        problem = filestorage_nesting_problem(text, path)
+        if problem is not None:
+            raise CameraError(f"camera file {path}: not a camera file ({problem})")
         try:
             storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         except (cv2.error, SystemError) as err:  # OpenCV 5's binding wraps parse errors in SystemError
@@ -106,8 +166,18 @@ class CameraModel:
             dist = _read_mat(storage, "distortion_coefficients", path, required=False)
             width = _read_int(storage, "image_width", path)
             height = _read_int(storage, "image_height", path)
+            model = storage.getNode("distortion_model")  # ROS camera_info
+            if not model.empty() and not model.isNone():
+                name = model.string() if model.isString() else ""
+                if name not in _ROS_DISTORTION_MODELS:
+                    raise CameraError(
+                        f"camera file {path}: distortion_model {name or '(not a name)'!r} is not supported "
+                        f"(use {' or '.join(_ROS_DISTORTION_MODELS)}: OpenCV's pinhole model)"
+                    )
         except (cv2.error, SystemError) as err:
             raise CameraError(f"camera file {path}: unreadable content ({_first_line(err)})") from None
+        except UnicodeDecodeError:  # a text value (dt, distortion_model) that is not UTF-8
+            raise CameraError(f"camera file {path}: not UTF-8 text") from None
         finally:
             storage.release()
         if matrix is not None and matrix.size == 9:
@@ -119,6 +189,9 @@ class CameraModel:
 
     def to_yaml(self, path: str | os.PathLike[str], **extra: str | float | int) -> None:
         """Write the OpenCV FileStorage YAML that :meth:`from_yaml` reads (extra scalars appended)."""
+        problem = opencv_path_problem(path)
+        if problem is not None:
+            raise OutputError(f"{path}: cannot write ({problem})")
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
         try:
             storage.write("image_width", self.width)
@@ -199,14 +272,31 @@ def _read_mat(storage: cv2.FileStorage, key: str, path: Path, *, required: bool)
             raise CameraError(f"camera file {path}: missing '{key}'")
         return None
     if node.isSeq():
-        values = [node.at(i).real() for i in range(node.size())]
-        return np.asarray(values, dtype=np.float64)
+        return _read_numbers(node, key, path)
     if not node.isMap():
         raise CameraError(f"camera file {path}: '{key}' is not an OpenCV matrix (!!opencv-matrix)")
-    mat = node.mat()
-    if mat is None:
-        raise CameraError(f"camera file {path}: '{key}' is not an OpenCV matrix (!!opencv-matrix)")
-    return np.asarray(mat, dtype=np.float64)
+    # Read here rather than with FileNode.mat(): OpenCV 5 copies `data` into a matrix of `rows` x `cols`
+    # before it checks the two agree, so a matrix without `cols` (0) overflows the heap and aborts later.
+    rows, cols, data, dt = (node.getNode(name) for name in ("rows", "cols", "data", "dt"))
+    if not (rows.isInt() and cols.isInt() and data.isSeq() and rows.real() > 0 and cols.real() > 0):
+        raise CameraError(f"camera file {path}: '{key}' needs positive integer rows and cols and a data list")
+    if not (dt.empty() or dt.isNone()):  # OpenCV's !!opencv-matrix; ROS camera_info has no dt
+        if not (dt.isString() and _ONE_CHANNEL_DT.fullmatch(dt.string())):
+            raise CameraError(f"camera file {path}: '{key}' dt must be a one-channel element type such as d")
+    values = _read_numbers(data, key, path)
+    if values.size != rows.real() * cols.real():
+        raise CameraError(
+            f"camera file {path}: '{key}' is {int(rows.real())}x{int(cols.real())} but has {values.size} values"
+        )
+    return values.reshape(int(rows.real()), int(cols.real()))
+
+
+def _read_numbers(node: cv2.FileNode, key: str, path: Path) -> np.ndarray:
+    """A sequence of numbers (OpenCV reads any other node as 0 or DBL_MAX: refuse them)."""
+    items = [node.at(i) for i in range(node.size())]
+    if not all(item.isInt() or item.isReal() for item in items):
+        raise CameraError(f"camera file {path}: '{key}' must hold numbers only")
+    return np.asarray([item.real() for item in items], dtype=np.float64)
 
 
 def _read_int(storage: cv2.FileStorage, key: str, path: Path) -> int:

@@ -68,7 +68,7 @@ def dictionary_id(name: str) -> int:
     lookup = {n.upper(): n for n in dir(cv2.aruco) if n.startswith("DICT_")}
     key = name.upper() if isinstance(name, str) else ""
     if key not in lookup:
-        raise ConfigError(f"unknown dictionary '{name}' (known: {', '.join(dictionary_names())})")
+        raise ConfigError(f"unknown dictionary {name!r} (known: {', '.join(dictionary_names())})")
     return int(getattr(cv2.aruco, lookup[key]))
 
 
@@ -383,14 +383,17 @@ class _Table:
         self.path = path
 
     def fail(self, key: str, message: str) -> ConfigError:
-        return ConfigError(f"{self.path}: {self.where} {key}: {message}")
+        return ConfigError(f"{self.path}: {self.where} {_shown_key(key)}: {message}")
 
     def take(self, key: str, kind: type, default: Any, check: Callable[[Any], str | None] | None = None) -> Any:
         if key not in self.data:
             return default
         value = self.data.pop(key)
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
+            try:
+                value = float(value)
+            except OverflowError:  # TOML integers are not bounded in tomllib
+                raise self.fail(key, "must be finite, got an integer too large for a number") from None
         if kind is int and isinstance(value, bool) or not isinstance(value, kind):
             raise self.fail(key, f"must be {_kind_name(kind)}, got {value!r}")
         if kind is float and not math.isfinite(value):
@@ -416,12 +419,23 @@ class _Table:
 
     def done(self) -> None:
         if self.data:
-            unknown = ", ".join(sorted(map(str, self.data)))
+            unknown = ", ".join(sorted(map(_shown_key, self.data)))
             raise ConfigError(f"{self.path}: {self.where}: unknown key(s): {unknown}")
+
+
+def _shown_key(key: object) -> str:
+    """A key as the message shows it: quoted when it holds line breaks or control characters (a TOML
+    key may), so that the message stays one line and prints nothing but text."""
+    text = str(key)
+    return text if text.isprintable() else repr(text)
 
 
 def _kind_name(kind: type) -> str:
     return {int: "an integer", float: "a number", str: "a string", bool: "true or false"}.get(kind, kind.__name__)
+
+
+def _printable(value: str) -> str | None:
+    return None if value.isprintable() else "must not contain line breaks or control characters"
 
 
 def _positive(value: float) -> str | None:
@@ -446,7 +460,7 @@ def _parse_board(bd: _Table, name: str, kind: str, dictionary: str, limit: int, 
         if has_file == has_inline:
             raise bd.fail("layout", 'a custom board needs either layout = "<file>" or inline [[boards.markers]]')
         if has_file:
-            layout_name = bd.take("layout", str, None)
+            layout_name = bd.take("layout", str, None, _printable)
             base = Path(path).parent if path and not path.startswith("<") else Path.cwd()
             layout_path = base / layout_name
             try:
@@ -549,6 +563,8 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     for key in list(lengths_raw.data):
         if not (key.isascii() and key.isdigit()) or not 0 <= int(key) < limit:
             raise lengths_raw.fail(key, f"keys must be marker ids 0..{limit - 1}")
+        if int(key) in lengths:  # "7" and "07"
+            raise lengths_raw.fail(key, f"marker {int(key)} is listed twice")
         lengths[int(key)] = lengths_raw.take(key, float, None, _positive)
     mk.done()
 
@@ -663,13 +679,14 @@ def _parse_overlays(root: _Table, path: str, defaults: TrackerConfig) -> tuple[O
     raw_overlays = root.data.pop("overlays")
     if not isinstance(raw_overlays, list):
         raise ConfigError(f"{path}: overlays must be an array of tables ([[overlays]])")
-    base = Path(path).parent if path and not path.startswith("<") else Path.cwd()
+    # absolute: the models are read later (by the overlay renderer), maybe from another working directory
+    base = Path(path).parent.absolute() if path and not path.startswith("<") else Path.cwd()
     result = []
     for index, raw in enumerate(raw_overlays):
         ov = _Table(raw, f"[[overlays]] #{index + 1}", path)
         target = ov.take("target", str, "marker:*", _target_problem)
         kind = ov.take("kind", str, "cube", lambda v: None if v in OVERLAY_KINDS else f"must be one of {OVERLAY_KINDS}")
-        mesh_path = ov.take("path", str, "")
+        mesh_path = ov.take("path", str, "", _printable)
         if kind == "mesh" and not mesh_path:
             raise ov.fail("path", 'a mesh overlay needs a model file (or "builtin:pin")')
         if kind != "mesh" and mesh_path:
@@ -717,7 +734,7 @@ def _take_vector(
     if not numbers or len(value) != size:
         raise table.fail(key, f"must be a list of {size} numbers, got {value!r}")
     low = -limit if minimum is None else minimum
-    if not all(math.isfinite(v) and low <= v <= limit for v in value):
+    if not all(low <= v <= limit and math.isfinite(v) for v in value):  # bounds first: no float() of huge ints
         raise table.fail(key, f"values must be finite and in [{low:g}, {limit:g}], got {value!r}")
     return tuple(float(v) for v in value)
 
@@ -735,6 +752,8 @@ def load_config(path: str | os.PathLike[str] | None = None) -> TrackerConfig:
         raise ConfigError(f"config file {path}: not UTF-8 text ({err.reason})") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"config file {path}: invalid TOML: {err}") from None
+    except RecursionError:  # tomllib recurses per nesting level of arrays and inline tables
+        raise ConfigError(f"config file {path}: invalid TOML: nested too deeply") from None
     except OSError as err:
         raise ConfigError(f"config file {path}: cannot read ({err.strerror})") from None
     return parse_config(data, str(path))

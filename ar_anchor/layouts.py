@@ -28,6 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .camera import filestorage_nesting_problem, opencv_path_problem
 from .errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -53,7 +54,7 @@ def validate_layout(markers: Mapping[int, Any], where: str) -> Layout:
             raise ConfigError(f"{where}: marker id {marker_id!r} must be a non-negative integer")
         try:
             points = np.asarray(corners, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: a TOML integer beyond any float
             raise ConfigError(f"{where}: marker {marker_id}: corners must be 4 [x, y, z] numbers") from None
         if points.shape != (4, 3):
             raise ConfigError(
@@ -83,14 +84,27 @@ def layout_from_mapping(data: Any, where: str) -> Layout:
         if not isinstance(entry, Mapping) or set(entry) != {"id", "corners"}:
             raise ConfigError(f"{where}: markers entry #{index + 1} must have exactly the keys id and corners")
         marker_id = entry["id"]
+        if isinstance(marker_id, bool) or not isinstance(marker_id, int):
+            raise ConfigError(f"{where}: markers entry #{index + 1}: id must be an integer, got {marker_id!r}")
         if marker_id in markers:
             raise ConfigError(f"{where}: marker id {marker_id} appears twice")
         markers[marker_id] = entry["corners"]
     return validate_layout(markers, where)
 
 
+def _is_number(node: cv2.FileNode) -> bool:
+    """OpenCV reads a string node as a number without complaint (0 or DBL_MAX): check first."""
+    return node.isInt() or node.isReal()
+
+
 def _read_aruco_marker_map(path: Path) -> Layout:
     where = f"layout file {path}"
+    try:
+        problem = opencv_path_problem(path) or filestorage_nesting_problem(path.read_bytes(), path)
+    except OSError as err:
+        raise ConfigError(f"{where}: cannot read ({err.strerror})") from None
+    if problem is not None:
+        raise ConfigError(f"{where}: not a readable OpenCV YAML file ({problem})")
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as err:  # OpenCV 5 wraps parse errors in SystemError
@@ -100,10 +114,13 @@ def _read_aruco_marker_map(path: Path) -> Layout:
     try:
         if not storage.isOpened():
             raise ConfigError(f"{where}: not a readable OpenCV YAML file")
+        if not storage.root().isMap():  # getNode() on a list or a scalar document is an OpenCV assertion
+            raise ConfigError(f"{where}: expected key: value pairs at the top level (an ArUco marker map)")
         info = storage.getNode("aruco_bc_mInfoType")
-        if not info.isNone() and int(info.real()) != 1:
+        if not info.isNone() and not (_is_number(info) and info.real() == 1):
+            shown = f"{info.real():g}" if _is_number(info) else "not a number"
             raise ConfigError(
-                f"{where}: aruco_bc_mInfoType is {int(info.real())} (pixels); a board needs a map in metres (type 1)"
+                f"{where}: aruco_bc_mInfoType is {shown}; a board needs a map in metres (type 1; 0 is pixels)"
             )
         node = storage.getNode("aruco_bc_markers")
         if node.isNone() or not node.isSeq():
@@ -115,13 +132,13 @@ def _read_aruco_marker_map(path: Path) -> Layout:
             if ident is None or ident.isNone() or corners is None or not corners.isSeq() or corners.size() != 4:
                 raise ConfigError(f"{where}: aruco_bc_markers entry #{i + 1} needs an id and 4 corners")
             value = ident.real()
-            if not math.isfinite(value) or value != int(value):
+            if not _is_number(ident) or not math.isfinite(value) or value != int(value):
                 raise ConfigError(f"{where}: aruco_bc_markers entry #{i + 1}: id must be an integer")
             points = []
             for j in range(4):
                 point = corners.at(j)
-                if not point.isSeq() or point.size() != 3:
-                    raise ConfigError(f"{where}: marker {int(value)}: corner {j + 1} must be [x, y, z]")
+                if not point.isSeq() or point.size() != 3 or not all(_is_number(point.at(k)) for k in range(3)):
+                    raise ConfigError(f"{where}: marker {int(value)}: corner {j + 1} must be [x, y, z] numbers")
                 points.append([point.at(k).real() for k in range(3)])
             if int(value) in markers:
                 raise ConfigError(f"{where}: marker id {int(value)} appears twice")
@@ -149,4 +166,6 @@ def read_layout(path: Path) -> Layout:
         raise ConfigError(f"{where}: not UTF-8 text") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{where}: neither an ArUco marker map (YAML) nor a TOML layout: {err}") from None
+    except RecursionError:  # tomllib recurses per nesting level of arrays and inline tables
+        raise ConfigError(f"{where}: nested too deeply to be a layout") from None
     return layout_from_mapping(data, where)

@@ -84,6 +84,8 @@ PAPERS: dict[str, tuple[float, float]] = {"a4": (210.0, 297.0), "letter": (215.9
 FORMATS = ("pdf", "svg", "png")
 MM_PER_INCH = 25.4
 MAX_BOARD_CELLS = 100  # the tracker config accepts at most 100 columns / rows
+MIN_MARKER_MM = 1.0  # a marker's black square; smaller ones do not print (nor get detected)
+MAX_DPI = 2400  # beyond any printer; an A4 page is then 20k x 28k px (560 MB), and 10x more would exhaust memory
 
 # ---------------------------------------------------------------------------- page layout (mm)
 
@@ -301,7 +303,7 @@ class MarkerSheet:
             raise InputError("--ids: no ids given")
         if len(set(ids)) != len(ids):
             raise InputError(f"--ids: ids must be unique, got {list(ids)}")
-        _check_length("--size-mm", size_mm)
+        _check_length("--size-mm", size_mm, MIN_MARKER_MM)
         _check_ids("--ids", dictionary, ids)
         return cls("single", dictionary, ids, float(size_mm), paper=_check_paper(paper))
 
@@ -321,7 +323,7 @@ class MarkerSheet:
         dictionary = canonical_dictionary(dictionary)
         _check_count("--cols", cols, 1)
         _check_count("--rows", rows, 1)
-        _check_length("--size-mm", size_mm)
+        _check_length("--size-mm", size_mm, MIN_MARKER_MM)
         _check_length("--gap-mm", gap_mm)
         ids = _board_ids(dictionary, first_id, cols * rows, f"a {cols}x{rows} grid board")
         module = size_mm / (cv2.aruco.getPredefinedDictionary(dictionary_id(dictionary)).markerSize + 2)
@@ -362,7 +364,7 @@ class MarkerSheet:
         _check_count("--cols", cols, 2)
         _check_count("--rows", rows, 2)
         _check_length("--square-mm", square_mm)
-        _check_length("--size-mm", marker_mm)
+        _check_length("--size-mm", marker_mm, MIN_MARKER_MM)
         if marker_mm >= square_mm:
             raise InputError(
                 f"--size-mm: the marker ({_mm(marker_mm)} mm) must be smaller than the chessboard square "
@@ -660,9 +662,11 @@ def _metres(mm: float) -> str:
     return repr(float(mm) / 1000.0)
 
 
-def _check_length(option: str, value: float | None) -> None:
+def _check_length(option: str, value: float | None, minimum: float = 0.0) -> None:
     if value is None or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise InputError(f"{option}: must be a length in mm > 0, got {value!r}")
+    if value < minimum:
+        raise InputError(f"{option}: must be at least {minimum:g} mm (nothing smaller prints), got {value!r}")
 
 
 def _check_count(option: str, value: int | None, minimum: int) -> None:
@@ -939,8 +943,8 @@ def _png_with_dpi(image: np.ndarray, dpi: int) -> bytes:
 
 def render_png(sheet: MarkerSheet, dpi: int = 300) -> list[bytes]:
     """One PNG per page at ``dpi`` (pHYs set). Markers' modules are at least 2 px, else an InputError."""
-    if not isinstance(dpi, int) or dpi < 1:
-        raise InputError(f"--dpi: must be a positive integer, got {dpi!r}")
+    if not isinstance(dpi, int) or not 1 <= dpi <= MAX_DPI:
+        raise InputError(f"--dpi: must be an integer in [1, {MAX_DPI}], got {dpi!r}")
     module_px = sheet.module_mm / MM_PER_INCH * dpi
     if module_px < 2.0:
         raise InputError(

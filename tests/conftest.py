@@ -22,3 +22,28 @@ def realdata() -> Path:
     if not (root / "MANIFEST.md").is_file():
         pytest.skip(f"real data not found at {root} (set AR_ANCHOR_REALDATA)")
     return root
+
+
+# ---------------------------------------------------------------------------- hypothesis profiles
+# ci (default): a fixed, modest example budget, derandomized, so the fuzz/property suite is
+# repeatable and runs in bounded time. long: the longer hunt, e.g.
+#   HYPOTHESIS_PROFILE=long pytest tests/test_fuzz_*.py tests/test_media_faults.py tests/test_security.py
+# Each test's own @settings(max_examples=...) is its ci budget; FUZZ_SCALE multiplies it under "long"
+# (see tests/fuzzing.py: examples()).
+from hypothesis import HealthCheck, settings  # noqa: E402
+
+settings.register_profile(
+    "ci",
+    derandomize=True,
+    deadline=None,
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
+settings.register_profile(
+    "long",
+    derandomize=False,
+    deadline=None,
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))

@@ -11,6 +11,7 @@ until then stays valid.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import glob
 import logging
@@ -24,7 +25,7 @@ from types import TracebackType
 import cv2
 import numpy as np
 
-from ..camera import CameraModel
+from ..camera import CameraModel, opencv_path_problem
 from ..errors import SourceError
 from .base import Frame
 
@@ -41,6 +42,8 @@ log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm"})
 _GLOB_CHARS = re.compile(r"[*?\[]")
+# frame rates of image sequences: a frame per 1000 s at the slowest, one per microsecond at the fastest
+MIN_FPS, MAX_FPS = 1e-3, 1e6
 
 
 def natural_key(path: str | os.PathLike[str]) -> list[object]:
@@ -72,6 +75,22 @@ def to_bgr8(image: np.ndarray) -> np.ndarray | None:
     if channels == 1:
         return cv2.cvtColor(image[..., 0], cv2.COLOR_GRAY2BGR)
     return None
+
+
+@contextlib.contextmanager
+def _decoder_quiet() -> Iterator[None]:
+    """OpenCV's own log line for an image it cannot decode ("[ERROR:0@1.6] ... IHDR chunk shall be first")
+    would stand beside our warning naming the file: silence it, unless OpenCV's messages were asked
+    for (-vv leaves OpenCV's log level above ERROR)."""
+    previous = cv2.utils.logging.getLogLevel()
+    if previous > cv2.utils.logging.LOG_LEVEL_ERROR:
+        yield
+        return
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(previous)
 
 
 def read_timestamps_csv(path: Path) -> list[tuple[int, int]]:
@@ -124,6 +143,9 @@ class VideoFileSource(_FileSourceBase):
             raise SourceError(f"{self.path}: empty file (0 bytes), not a video")
         if not os.access(self.path, os.R_OK):
             raise SourceError(f"{self.path}: not readable (permission denied)")
+        problem = opencv_path_problem(self.path)
+        if problem is not None:
+            raise SourceError(f"{self.path}: {problem}")
         sidecar = (
             Path(timestamps) if timestamps is not None else self.path.with_name(self.path.name + ".timestamps.csv")
         )
@@ -231,8 +253,8 @@ class ImageFolderSource(_FileSourceBase):
     """
 
     def __init__(self, spec: str | os.PathLike[str], *, fps: float = 30.0) -> None:
-        if not (math.isfinite(fps) and fps > 0):
-            raise SourceError(f"--fps: must be > 0, got {fps}")
+        if not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):  # else timestamps overflow or all round to 0
+            raise SourceError(f"--fps: must be in [{MIN_FPS:g}, {MAX_FPS:g}], got {fps:g}")
         self.fps = fps
         self.spec = os.fspath(spec)
         path = Path(self.spec)
@@ -261,7 +283,8 @@ class ImageFolderSource(_FileSourceBase):
     def _load(self, path: Path) -> np.ndarray | None:
         try:
             data = np.fromfile(path, dtype=np.uint8)
-            image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+            with _decoder_quiet():
+                image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
         except (OSError, cv2.error):
             return None
         return to_bgr8(image) if image is not None else None
