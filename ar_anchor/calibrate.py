@@ -1034,6 +1034,8 @@ class _Recording:
         import rerun as rr
         import rerun.blueprint as rrb
 
+        from .viz import spawn_local_viewer
+
         self.rr = rr
         self.rec = rr.RecordingStream("ar_anchor_calibrate")
         self.path = rrd_path
@@ -1048,8 +1050,8 @@ class _Recording:
             except OSError as err:
                 raise OutputError(f"--rrd {rrd_path}: cannot write ({err.strerror})") from None
             sinks.append(rr.FileSink(str(self.partial)))
-        if spawn and self._spawn(rrd_path):
-            sinks.append(rr.GrpcSink())
+        if spawn and (url := spawn_local_viewer()) is not None:
+            sinks.append(rr.GrpcSink(url))
         blueprint = rrb.Blueprint(
             rrb.Horizontal(
                 rrb.Vertical(
@@ -1068,20 +1070,6 @@ class _Recording:
         if sinks:
             self.rec.set_sinks(*sinks, default_blueprint=blueprint)
         self.rec.send_recording_name("ar-anchor calibrate")
-
-    def _spawn(self, rrd_path: Path | None) -> bool:
-        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-            log.warning(
-                "--spawn: no display, so no rerun viewer; recording to file only (open it with: rerun %s)", rrd_path
-            )
-            return False
-        beside = Path(sys.executable).with_name("rerun")
-        try:
-            self.rr.spawn(connect=False, recording=self.rec, executable_path=str(beside) if beside.exists() else None)
-        except Exception as err:  # no viewer binary, no display, port taken: the recording still goes on
-            log.warning("--spawn: could not start the rerun viewer (%s); recording to file only", _first_line(err))
-            return False
-        return True
 
     def event(self, text: str, *, frame: int | None = None, warn: bool = False) -> None:
         rr = self.rr
@@ -1173,9 +1161,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     quiet = bool(getattr(args, "quiet", False))
     if out.is_dir():
-        raise OutputError(f"--out {out}: is a directory (give the camera YAML file to write)")
+        raise InputError(f"--out {out}: is a directory (give the camera YAML file to write)")
     if out.suffix.lower() == ".rrd":
-        raise OutputError(f"--out {out}: the camera file must be YAML, e.g. camera.yml")
+        raise InputError(f"--out {out}: the camera file must be YAML, e.g. camera.yml")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:

@@ -60,6 +60,37 @@ _positive_float = _float_above(0.0, inclusive=False)
 _non_negative_float = _float_above(0.0, inclusive=True)
 
 
+def _float_in(low: float, high: float):
+    """A number in [low, high]."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (math.isfinite(value) and low <= value <= high):
+            raise argparse.ArgumentTypeError(f"must be a number in [{low:g}, {high:g}], got {text!r}")
+        return value
+
+    return parse
+
+
+def _viewer_url(text: str) -> str:
+    """A rerun viewer's gRPC address: rerun+http(s)://host:port/proxy (or rerun://, rerun+https://)."""
+    from urllib.parse import urlparse
+
+    parsed = urlparse(text)
+    if parsed.scheme not in ("rerun", "rerun+http", "rerun+https") or not parsed.hostname:
+        raise argparse.ArgumentTypeError(
+            f"expected a rerun viewer URL such as rerun+http://127.0.0.1:9876/proxy, got {text!r}"
+        )
+    try:
+        parsed.port  # noqa: B018 - raises ValueError on a malformed port
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad port in {text!r}") from None
+    return text
+
+
 # ---------------------------------------------------------------------------- parser
 
 
@@ -140,10 +171,16 @@ def build_parser() -> argparse.ArgumentParser:
         default="sweep",
         help="camera path (default sweep: near to far)",
     )
-    demo.add_argument("--near", type=_positive_float, default=0.35, help="nearest camera distance, metres")
-    demo.add_argument("--far", type=_positive_float, default=3.0, help="farthest camera distance, metres")
-    demo.add_argument("--noise", type=_non_negative_float, default=2.0, help="sensor noise sigma, grey levels")
-    demo.add_argument("--blur", type=_non_negative_float, default=0.6, help="optical blur sigma, pixels")
+    demo.add_argument(
+        "--near", type=_float_in(0.02, 100.0), default=0.35, help="nearest camera distance, metres (0.02-100)"
+    )
+    demo.add_argument(
+        "--far", type=_float_in(0.02, 100.0), default=3.0, help="farthest camera distance, metres (0.02-100)"
+    )
+    demo.add_argument(
+        "--noise", type=_float_in(0.0, 100.0), default=2.0, help="sensor noise sigma, grey levels (0-100)"
+    )
+    demo.add_argument("--blur", type=_float_in(0.0, 50.0), default=0.6, help="optical blur sigma, pixels (0-50)")
     _add_run_options(demo, "demo")
     demo.set_defaults(func=cmd_demo)
 
@@ -216,6 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     viewer.add_argument(
         "--connect",
         metavar="URL",
+        type=_viewer_url,
         default=None,
         help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
     )
@@ -607,8 +645,10 @@ def cmd_live(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import write_board_report, write_overlay_report, write_stability_report
     from .config import load_config
+    from .outputs import prepare_out_dir
 
     config = load_config(args.config)
+    prepare_out_dir(args.out)  # before minutes of work, not after
     command = f"ar-anchor bench {args.name}" + (" --quick" if args.quick else "")
 
     def progress(i: int, total: int, name: str) -> None:

@@ -57,6 +57,7 @@ import numpy as np
 from . import __version__
 from .config import dictionary_id, dictionary_names, dictionary_size
 from .errors import ConfigError, InputError, OutputError
+from .outputs import prepare_out_dir
 
 __all__ = [
     "FORMATS",
@@ -957,20 +958,6 @@ def render_png(sheet: MarkerSheet, dpi: int = 300) -> list[bytes]:
 # ---------------------------------------------------------------------------- files and the command
 
 
-def _check_out_dir(out: Path) -> None:
-    """An --out that can never be a directory is bad input; failing to create or write it is an OutputError."""
-    probe = out
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    if probe.exists() and not probe.is_dir():
-        what = "is" if probe == out else f"is inside {probe}, which is"
-        raise InputError(f"--out: {out} {what} a file, not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise OutputError(f"--out: cannot create directory {out} ({err.strerror or err})") from None
-
-
 def write_sheet(sheet: MarkerSheet, out: str | os.PathLike[str], fmt: str = "pdf", dpi: int = 300) -> list[Path]:
     """Render and write the sheet (``<stem>.<fmt>`` or ``<stem>_p<N>.<fmt>``) and its ``<stem>.toml``;
     returns the written paths, sheet files first. Everything is rendered before anything is written."""
@@ -986,7 +973,7 @@ def write_sheet(sheet: MarkerSheet, out: str | os.PathLike[str], fmt: str = "pdf
         blobs = render_png(sheet, dpi)
     names = [f"{stem}.{fmt}"] if len(blobs) == 1 else [f"{stem}_p{n}.{fmt}" for n in range(1, len(blobs) + 1)]
     config = sheet.config_toml(names, fmt, dpi).encode("utf-8")
-    _check_out_dir(out)
+    prepare_out_dir(out)
     written = []
     for name, blob in [*zip(names, blobs), (f"{stem}.toml", config)]:
         path = out / name

@@ -18,16 +18,40 @@ from typing import IO, Any
 
 import numpy as np
 
-from .errors import OutputError
+from .errors import InputError, OutputError
 from .geometry import Pose, pose_errors
 from .tracker import FrameResult
 
-__all__ = ["POSES_CSV_HEADER", "PosesCsvWriter", "RawVideoWriter", "RunSummary", "write_json_atomic"]
+__all__ = [
+    "POSES_CSV_HEADER",
+    "PosesCsvWriter",
+    "RawVideoWriter",
+    "RunSummary",
+    "prepare_out_dir",
+    "write_json_atomic",
+]
 
 POSES_CSV_HEADER = (
     "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
     "raw_rvec_x,raw_rvec_y,raw_rvec_z,raw_tvec_x,raw_tvec_y,raw_tvec_z,reproj_px,ambiguity"
 ).split(",")
+
+
+def prepare_out_dir(out: str | os.PathLike[str], option: str = "--out") -> Path:
+    """Create the output directory ``out``. One that can never be a directory (a file is in the way)
+    is bad input (:class:`InputError`, exit 2); failing to create it otherwise is an :class:`OutputError`."""
+    out = Path(out)
+    probe = out
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        what = "is" if probe == out else f"is inside {probe}, which is"
+        raise InputError(f"{option}: {out} {what} a file, not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"{option}: cannot create directory {out} ({err.strerror or err})") from None
+    return out
 
 
 def _num(value: float | None) -> str:

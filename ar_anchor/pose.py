@@ -221,6 +221,7 @@ def solve_marker(
         if not candidates:
             continue
         candidates.sort(key=lambda h: h.reproj_px)
+        candidates = candidates[:2]  # a square has two poses; a generic solver (SQPNP) may offer more minima
         finite = sorted(e for e in all_errors if math.isfinite(e))
         ambiguity = (finite[1] + _RATIO_EPS_PX) / (finite[0] + _RATIO_EPS_PX) if len(finite) >= 2 else math.nan
         return MarkerPose(marker_id, length_m, corners, tuple(candidates), ambiguity, name)

@@ -9,6 +9,7 @@ readable; ``summary.json`` then says how the run ended (``status``).
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 import threading
@@ -19,8 +20,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError, OutputError
-from .outputs import PosesCsvWriter, RawVideoWriter, RunSummary, write_json_atomic
+from .camera import opencv_path_problem
+from .errors import InputError
+from .outputs import PosesCsvWriter, RawVideoWriter, RunSummary, prepare_out_dir, write_json_atomic
 from .overlay import OverlayRenderer
 from .pipeline import OutputStage, Prefetcher
 from .sources.base import Frame, FrameSource
@@ -129,11 +131,9 @@ def run_session(
         raise InputError(
             f"--video-out {options.video_out}: unsupported extension (use {', '.join(SUPPORTED_EXTENSIONS)})"
         )
-    out_dir = Path(out_dir)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise OutputError(f"--out {out_dir}: cannot create the directory ({err.strerror})") from err
+    if options.video_out is not None and (problem := opencv_path_problem(options.video_out)):
+        raise InputError(f"--video-out {os.fsencode(options.video_out)!r}: {problem}")
+    out_dir = prepare_out_dir(out_dir)
     poses_csv, summary_json, recording_rrd = out_dir / "poses.csv", out_dir / "summary.json", out_dir / "recording.rrd"
     raw_video = out_dir / "raw.mkv" if options.record_raw else None
     total = source.frame_count

@@ -27,6 +27,9 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shutil
+import socket
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Mapping
@@ -104,6 +107,54 @@ def default_blueprint() -> rrb.Blueprint:
     )
 
 
+VIEWER_PORT = 9876  # rerun's default gRPC port
+
+
+def _listening(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.settimeout(0.2)
+        return probe.connect_ex((host, port)) == 0
+
+
+def spawn_local_viewer(what: str = "--spawn") -> str | None:
+    """Start a rerun viewer that listens on 127.0.0.1 only, and return its gRPC URL; None (with a
+    warning) when there is no display or no viewer. A viewer already listening there is reused.
+
+    ``rr.spawn`` is not used: the viewer it starts listens on every network interface (0.0.0.0), and
+    rerun 0.41 offers no bind address for it. The viewer outlives the run (its own session).
+    """
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        log.warning("%s: no display (DISPLAY / WAYLAND_DISPLAY unset), so no rerun viewer; recording only", what)
+        return None
+    url = f"rerun+http://127.0.0.1:{VIEWER_PORT}/proxy"
+    if _listening("127.0.0.1", VIEWER_PORT):
+        return url
+    beside = Path(sys.executable).with_name("rerun")
+    executable = str(beside) if beside.exists() else shutil.which("rerun")
+    if executable is None:
+        log.warning("%s: no rerun viewer found (pip install rerun-sdk); recording to file only", what)
+        return None
+    command = [executable, "--bind", "127.0.0.1", "--port", str(VIEWER_PORT), "--expect-data-soon"]
+    try:
+        subprocess.Popen(  # noqa: S603 - a fixed command line, no shell
+            command,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    except OSError as err:
+        log.warning("%s: could not start the rerun viewer (%s); recording to file only", what, err.strerror or err)
+        return None
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        if _listening("127.0.0.1", VIEWER_PORT):
+            return url
+        time.sleep(0.1)
+    log.warning("%s: the rerun viewer did not start listening; recording to file only", what)
+    return None
+
+
 class RerunRecorder:
     """Logs frames and tracker results to an ``.rrd`` file and/or a spawned viewer."""
 
@@ -123,8 +174,8 @@ class RerunRecorder:
         self._viewer: rr.GrpcSink | None = None
         if connect is not None:
             self._viewer = rr.GrpcSink(connect)
-        elif spawn and self._spawn_viewer():
-            self._viewer = rr.GrpcSink()
+        elif spawn and (url := spawn_local_viewer()) is not None:
+            self._viewer = rr.GrpcSink(url)
         self.rec = rr.RecordingStream("ar_anchor")
         self.parts: list[Path] = []  # the recording's files, in order (see part_minutes)
         self._part_started = time.monotonic()
@@ -174,24 +225,6 @@ class RerunRecorder:
         self._static_targets.clear()  # each target's static shape (the anchor's too) goes into the new part when seen
         if self._video_asset is not None:
             self.rec.log("camera/image", self._video_asset, static=True)
-
-    def _spawn_viewer(self) -> bool:
-        """Start a rerun viewer (the one installed beside this Python first); warn and go on without it."""
-        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-            log.warning(
-                "--spawn: no display (DISPLAY / WAYLAND_DISPLAY unset), so no rerun viewer; recording to "
-                "file only (open it later with: rerun %s)",
-                self.rrd_path,
-            )
-            return False
-        beside = Path(sys.executable).with_name("rerun")
-        try:
-            rr.spawn(connect=False, recording=self.rec, executable_path=str(beside) if beside.exists() else None)
-        except Exception as err:  # no viewer binary, no display, port taken: the recording still goes on
-            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-            log.warning("--spawn: could not start the rerun viewer (%s); recording to file only", reason)
-            return False
-        return True
 
     def use_video(self, path: str | os.PathLike[str], expected_frames: int | None = None) -> bool:
         """Reference the source video itself (``AssetVideo`` + ``VideoFrameReference``) instead of

@@ -150,7 +150,7 @@ def test_a_full_disk_is_one_clear_error_and_what_was_written_stays_valid(tmp_pat
     assert ",".join(rows[0]) == POSES_HEADER and all(len(row) == len(rows[0]) for row in rows[1:])
 
 
-def test_an_output_directory_that_cannot_be_created_is_exit_1_naming_it(tmp_path):
+def test_an_output_directory_under_a_file_is_exit_2_naming_it(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
     result = subprocess.run(
@@ -161,6 +161,7 @@ def test_an_output_directory_that_cannot_be_created_is_exit_1_naming_it(tmp_path
         timeout=60,
         check=False,
     )
-    assert result.returncode == EXIT_FAILURE, describe(result)
+    assert result.returncode == EXIT_USAGE, describe(result)  # bad input: it can never be a directory
     assert_no_traceback(result)
     assert error_lines(result.stderr) and str(blocker / "out") in error_lines(result.stderr)[0]
+    assert not (blocker.parent / "out").exists()

@@ -420,9 +420,6 @@ def test_check_pose_passes_only_valid_poses(rvec, tvec, corners, camera):
     assert math.isfinite(error) and 0 <= error <= 3.0
 
 
-@pytest.mark.xfail(
-    strict=True, reason="pose.py solve_marker: the SQPNP fallback returns 3 solutions, kept as 3 hypotheses"
-)
 def test_solve_marker_keeps_at_most_two_hypotheses():
     # found by the long run: a valid camera (principal point at the image corner, a little tangential
     # distortion) and a marker far outside its 64x48 image; IPPE_SQUARE misses (22 px), SQPNP returns three

@@ -9,7 +9,7 @@ listen on localhost.
    and every file a run creates or changes is inside its output directory (or the one file the
    user named, like ``--video-out``).
 3. rerun: nothing serves gRPC or the web viewer; ``--spawn``'s viewer must listen on localhost only
-   (rerun 0.41's ``rr.spawn`` starts ``rerun`` with its default bind, 0.0.0.0: xfail until fixed).
+   (rerun 0.41's ``rr.spawn`` starts ``rerun`` with its default bind, 0.0.0.0, so the package starts the viewer itself).
 """
 
 from __future__ import annotations
@@ -461,11 +461,6 @@ def test_the_rerun_viewer_listens_on_all_interfaces_unless_told():
     assert "--bind" in help_text and "[default: 0.0.0.0]" in help_text
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="viz.py RerunRecorder._spawn_viewer and calibrate.py _Recording._spawn call rr.spawn, whose viewer "
-    "listens on 0.0.0.0:9876 (rerun --bind default); start `rerun --bind 127.0.0.1 --port 9876` instead",
-)
 def test_spawn_starts_a_viewer_bound_to_localhost():
     # rr.spawn (rerun 0.41) has no bind parameter: any call to it exposes the viewer to the network
     assert not _rerun_calls("spawn"), f"rr.spawn used at {_rerun_calls('spawn')}"
