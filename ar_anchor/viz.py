@@ -172,10 +172,11 @@ class RerunRecorder:
         self.camera = camera
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
         self._viewer: rr.GrpcSink | None = None
+        self._viewer_url: str | None = None
         if connect is not None:
-            self._viewer = rr.GrpcSink(connect)
+            self._viewer, self._viewer_url = rr.GrpcSink(connect), connect
         elif spawn and (url := spawn_local_viewer()) is not None:
-            self._viewer = rr.GrpcSink(url)
+            self._viewer, self._viewer_url = rr.GrpcSink(url), url
         self.rec = rr.RecordingStream("ar_anchor")
         self.parts: list[Path] = []  # the recording's files, in order (see part_minutes)
         self._part_started = time.monotonic()
@@ -319,9 +320,12 @@ class RerunRecorder:
         try:
             self.rec.flush(timeout_sec=timeout_s)
         except RuntimeError as err:
-            where = self.rrd_path if self.rrd_path is not None else "the rerun viewer"
+            where = [str(self.parts[-1])] if self.parts else []
+            if self._viewer_url is not None:
+                where.append(f"the viewer at {self._viewer_url}")
             raise OutputError(
-                f"{where}: cannot write the recording ({err}; disk full?); it holds the frames logged before"
+                f"{' and '.join(where) or 'recording'}: cannot write the recording ({err}: disk full, or the "
+                "viewer gone?); the file holds the frames logged before"
             ) from None
 
     def log_latency(self, stages: Mapping[str, float]) -> None:
