@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import BoardConfig, DetectorConfig, MarkersConfig, TrackerConfig
@@ -12,6 +13,7 @@ from ar_anchor.detection import Detector, Region, plan_regions
 from ar_anchor.geometry import Pose, angle_between_deg
 from ar_anchor.sources.base import Frame
 from ar_anchor.sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.tracker import Tracker
 
 
 def orbit_frames(frames: int = 40, markers=((0, 0.05, (0.0, 0.0)),), size=(1280, 720, 1000.0)):
@@ -167,3 +169,32 @@ def test_region_corners_of_far_small_markers_match_full_frame_corners():
         # outlined some of these 1.5-2 px off)
         assert found.ids.tolist() == full.ids.tolist(), distance
         np.testing.assert_allclose(found.corners, full.corners, atol=0.02, err_msg=f"at {distance} m")
+
+
+@pytest.mark.parametrize("full_every", [5, 15])
+def test_a_newly_appearing_marker_is_found_within_the_full_frame_period(full_every):
+    # given a tracker following marker 0 with ROI tracking (searching around it only), and then marker 1
+    # appearing elsewhere in the image (frame `switch` on)
+    camera = CameraModel.from_fov(1280, 720, 1000.0)
+    trajectory = Trajectory(kind="static", near_m=0.6, look_at=(0.05, 0.0, 0.0))
+    one = PlacedMarker(0, 0.05, Pose(np.zeros(3), np.array([-0.06, 0.0, 0.0])))
+    two = PlacedMarker(1, 0.05, Pose(np.zeros(3), np.array([0.16, 0.03, 0.0])))
+    scenes = [
+        SyntheticScene(camera=camera, markers=markers, trajectory=trajectory, frames=1, noise_sigma=1.0)
+        for markers in ((one,), (one, two))
+    ]
+    before, after = (SyntheticSource(scene).frame(0).image for scene in scenes)
+    tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=full_every), camera)
+    switch = 7
+    found_at = None
+    for index in range(switch + 3 * full_every):
+        image = before if index < switch else after
+        result = tracker.process(Frame(image, index, index * 33_333_333))
+        assert "marker:0" in result.targets
+        if index < switch:
+            assert "marker:1" not in result.targets
+        elif "marker:1" in result.targets and found_at is None:
+            found_at = index
+    # then it is found by the next full-frame search: within the full-frame period
+    assert found_at is not None
+    assert found_at - switch < full_every, (found_at, switch)
