@@ -589,6 +589,8 @@ def cmd_live(args: argparse.Namespace) -> int:
         except SourceError as err:
             raise SourceError(f"--camera {args.camera}: {err}") from None
         grabber = SyntheticGrabber(scene, loop=True)
+        if not args.quiet:
+            print(f"live: rendering the synthetic camera's {grabber.cached} frames ...", file=sys.stderr, flush=True)
         device_camera: CameraModel | None = render_camera
     else:
         grabber = WebcamGrabber(args.device, width=args.width, height=args.height, fps=args.fps, fourcc=args.fourcc)
