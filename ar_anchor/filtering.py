@@ -129,15 +129,23 @@ def pose_covariance(
 _RESIDUAL_TO_SIGMA = math.sqrt(2.0)
 
 
+_POSITION, _VELOCITY = np.arange(3), np.arange(3, 6)  # the blocks of a 3D constant-velocity state [x, v]
+
+
 def _cv_process_noise(dt: float, accel_sigma: float) -> np.ndarray:
     """Discrete white-noise-acceleration covariance for a 3D constant-velocity state [x, v]."""
     q = accel_sigma**2
-    block = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]) * q
-    return np.kron(block, np.eye(3))
+    noise = np.zeros((6, 6))
+    noise[_POSITION, _POSITION] = q * dt**3 / 3.0
+    noise[_POSITION, _VELOCITY] = noise[_VELOCITY, _POSITION] = q * dt**2 / 2.0
+    noise[_VELOCITY, _VELOCITY] = q * dt
+    return noise
 
 
 def _cv_transition(dt: float) -> np.ndarray:
-    return np.block([[np.eye(3), dt * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+    transition = np.eye(6)
+    transition[_POSITION, _VELOCITY] = dt
+    return transition
 
 
 # ---------------------------------------------------------------------------- filters
@@ -198,19 +206,13 @@ class _TwoModeCV:
         kept, velocity zeroed, a random walk; the moving one: :func:`_cv_transition`, :func:`_cv_process_noise`)."""
         if dt == self._dt:
             return
-        q = self.accel_moving**2
-        diagonal, velocity = np.arange(3), np.arange(3, 6)
-        f = np.zeros((2, 6, 6))
-        f[0, diagonal, diagonal] = 1.0
-        f[1, np.arange(6), np.arange(6)] = 1.0
-        f[1, diagonal, velocity] = dt
-        noise = np.zeros((2, 6, 6))
-        noise[0, diagonal, diagonal] = self.still_sigma**2 * dt
-        noise[0, velocity, velocity] = 1e-12
-        noise[1, diagonal, diagonal] = q * dt**3 / 3.0
-        noise[1, diagonal, velocity] = noise[1, velocity, diagonal] = q * dt**2 / 2.0
-        noise[1, velocity, velocity] = q * dt
-        self._F, self._Q, self._dt = f, noise, dt
+        still_f, still_q = np.zeros((6, 6)), np.zeros((6, 6))
+        still_f[_POSITION, _POSITION] = 1.0
+        still_q[_POSITION, _POSITION] = self.still_sigma**2 * dt
+        still_q[_VELOCITY, _VELOCITY] = 1e-12
+        self._F = np.stack([still_f, _cv_transition(dt)])
+        self._Q = np.stack([still_q, _cv_process_noise(dt, self.accel_moving)])
+        self._dt = dt
 
     def predict(self, dt: float) -> None:
         self._models(dt)

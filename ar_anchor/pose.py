@@ -104,11 +104,13 @@ def reprojection_rms(
     pose: Pose, points_in_target: np.ndarray, points_in_image: np.ndarray, camera: CameraModel
 ) -> float:
     """RMS over points of the Euclidean pixel distance between projected and observed points."""
-    projected, _ = cv2.projectPoints(
-        np.asarray(points_in_target, np.float64), pose.rvec, pose.tvec, camera.camera_matrix, camera.dist_or_none
+    return _rms(
+        pose,
+        np.asarray(points_in_target, np.float64),
+        np.asarray(points_in_image, np.float64).reshape(-1, 2),
+        camera.camera_matrix,
+        camera.dist_or_none,
     )
-    residual = projected.reshape(-1, 2) - np.asarray(points_in_image, np.float64).reshape(-1, 2)
-    return float(np.sqrt(np.mean(np.sum(residual * residual, axis=1))))
 
 
 def check_pose(

@@ -1531,7 +1531,9 @@ def _study(
             ("jitter/distance_std_mm", "Distance std (mm)"),
             ("jitter/frames/rotation_error_deg", "Rotation error per frame (deg)"),
         ]
-    _make_dir(out)
+    from .outputs import prepare_out_dir  # (imports the tracker: not on every CLI start)
+
+    prepare_out_dir(out)
     recording = _Recording(out / f"{name}.rrd", name, plots)
     try:
         if name == "jitter":
@@ -1558,15 +1560,6 @@ def _study(
     finally:
         recording.close()
     return result
-
-
-def _make_dir(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise OutputError(f"--out {out}: cannot create it ({err.strerror})") from None
 
 
 def _headline(result: dict[str, Any]) -> str:

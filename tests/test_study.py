@@ -154,7 +154,7 @@ def test_out_that_is_a_file_is_an_input_error(tmp_path):
     out = tmp_path / "taken"
     out.write_text("")
     # when / then
-    with pytest.raises(InputError, match="exists and is not a directory"):
+    with pytest.raises(InputError, match="a file, not a directory"):
         run_study(parse(["outliers", "--quick", "--out", str(out)]))
 
 
