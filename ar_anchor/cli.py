@@ -262,16 +262,29 @@ def build_parser() -> argparse.ArgumentParser:
     bench = _add_command(
         commands,
         "bench",
-        "benchmarks on synthetic ground truth",
+        "benchmarks on synthetic ground truth (and real video without it: real)",
         "stability: raw per-frame IPPE vs. the tracker over a grid of synthetic scenarios "
         "(flips, errors, jitter, lag, time to commit), written as markdown and JSON.",
     )
     bench.add_argument(
         "name",
-        choices=("stability", "boards", "overlay", "speed", "run"),
+        choices=("stability", "boards", "overlay", "speed", "run", "real"),
         help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
         "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop; "
-        "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p",
+        "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p; "
+        "real: relative-pose consistency of markers on one rigid sheet in a real video (tracker, its raw "
+        "per-frame pick, plain OpenCV), default chessboard.avi from $AR_ANCHOR_REALDATA",
+    )
+    bench.add_argument("--video", type=Path, default=None, help="real: the video (default: chessboard.avi)")
+    bench.add_argument(
+        "--camera", type=Path, default=None, help="real: its calibration (default: camera.yml or intrinsics.yml by it)"
+    )
+    bench.add_argument("--dictionary", default=None, help="real: override [detector] dictionary")
+    bench.add_argument(
+        "--marker-length", type=_positive_float, default=None, help="real: override [markers] length_m (metres)"
+    )
+    bench.add_argument(
+        "--layout", type=Path, default=None, help="real: printed marker map (ArUco YAML or TOML): also score vs. it"
     )
     bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
     bench.add_argument(
@@ -353,7 +366,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="tracker TOML (default: configs/default.toml values: lone markers, no boards; "
+        "demo and live --device synthetic: configs/demo.toml)",
+    )
     parser.add_argument("--dictionary", default=None, help="override [detector] dictionary, e.g. DICT_ARUCO_ORIGINAL")
     parser.add_argument(
         "--marker-length", type=_positive_float, default=None, help="override [markers] length_m: marker side in metres"
@@ -429,10 +448,11 @@ class _LiveStatus:
             sys.stderr.write("\n")
 
 
-def _load_tracker_config(args: argparse.Namespace):  # noqa: ANN202
+def _load_tracker_config(args: argparse.Namespace, *, demo: bool = False):  # noqa: ANN202
+    """``--config`` (or the built-in defaults; ``demo``: the demo scene's) with the command-line overrides."""
     from .config import load_config
 
-    config = load_config(args.config)
+    config = load_config(args.config, demo=demo)
     return config.with_overrides(
         dictionary=getattr(args, "dictionary", None),
         marker_length_m=getattr(args, "marker_length", None),
@@ -468,7 +488,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from .sources.synthetic import SyntheticSource, Trajectory, demo_scene
     from .tracker import Tracker
 
-    config = _load_tracker_config(args)
+    config = _load_tracker_config(args, demo=True)
     camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
     if args.trajectory == "sweep" and args.far < args.near:
         raise InputError(f"--far {args.far} must not be below --near {args.near}")
@@ -567,7 +587,7 @@ def cmd_live(args: argparse.Namespace) -> int:
     from .sources.synthetic import Trajectory, demo_scene
     from .tracker import Tracker
 
-    config = _load_tracker_config(args)
+    config = _load_tracker_config(args, demo=args.device == "synthetic")
     fps = args.fps or 30.0
     if args.device == "synthetic":
         render_camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
@@ -651,6 +671,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from .outputs import prepare_out_dir
 
     config = load_config(args.config)
+    real = None
+    if args.name == "real":  # its data files are checked (exit 2) before anything is written
+        from .bench_real import real_inputs
+
+        real = real_inputs(args.video, args.camera, args.dictionary, args.marker_length, args.layout)
     prepare_out_dir(args.out)  # before minutes of work, not after
     command = f"ar-anchor bench {args.name}" + (" --quick" if args.quick else "")
 
@@ -658,7 +683,24 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
 
-    if args.name == "run":
+    if real is not None:
+        from .bench_real import real_summary, write_real_report
+
+        for option in ("video", "camera", "dictionary", "marker_length", "layout", "config"):
+            if getattr(args, option) is not None:
+                command += f" --{option.replace('_', '-')} {getattr(args, option)}"
+        config = _load_tracker_config(  # as ar-anchor replay builds it
+            argparse.Namespace(config=args.config, dictionary=real.dictionary, marker_length=real.marker_length_m)
+        )
+
+        video_name = real.video.name
+
+        def frames(done: int, total: int | None) -> None:
+            if done % 50 == 0 or done == total:
+                progress(done - 1, total or done, f"frames of {video_name}")
+
+        print(real_summary(write_real_report(args.out, real, config, command=command, progress=frames)))
+    elif args.name == "run":
         from .bench_run import write_run_report
 
         if args.minutes is not None:

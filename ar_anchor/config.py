@@ -39,6 +39,7 @@ __all__ = [
     "PoseConfig",
     "RecordingConfig",
     "TrackerConfig",
+    "demo_config",
     "dictionary_names",
     "load_config",
 ]
@@ -97,7 +98,7 @@ class DetectorConfig:
 @dataclass(frozen=True)
 class MarkersConfig:
     length_m: float = 0.05
-    lengths_m: Mapping[int, float] = field(default_factory=lambda: {7: 0.04})
+    lengths_m: Mapping[int, float] = field(default_factory=dict)
     ids: tuple[int, ...] = ()  # lone markers to track; empty: every id of the dictionary
 
     def length_of(self, marker_id: int) -> float:
@@ -292,15 +293,15 @@ def _default_overlays() -> tuple[OverlayConfig, ...]:
     )
 
 
-def _default_boards() -> tuple[BoardConfig, ...]:
-    return (BoardConfig(name="desk", cols=2, rows=2, marker_length_m=0.04, separation_m=0.02, first_id=10),)
+DEMO_BOARD = BoardConfig(name="desk", cols=2, rows=2, marker_length_m=0.04, separation_m=0.02, first_id=10)
+DEMO_LENGTHS_M = {7: 0.04}
 
 
 @dataclass(frozen=True)
 class TrackerConfig:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     markers: MarkersConfig = field(default_factory=MarkersConfig)
-    boards: tuple[BoardConfig, ...] = field(default_factory=_default_boards)
+    boards: tuple[BoardConfig, ...] = ()
     pose: PoseConfig = field(default_factory=PoseConfig)
     filter: FilterConfig = field(default_factory=FilterConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
@@ -739,10 +740,20 @@ def _take_vector(
     return tuple(float(v) for v in value)
 
 
-def load_config(path: str | os.PathLike[str] | None = None) -> TrackerConfig:
-    """Read a tracker TOML file (None: the built-in defaults, identical to ``configs/default.toml``)."""
+def demo_config() -> TrackerConfig:
+    """The demo scene's config (``configs/demo.toml``): the built-in defaults plus the demo's ``desk``
+    board (ids 10-13, 0.04 m) and marker 7 at 0.04 m. Only ``ar-anchor demo`` and ``live --device
+    synthetic`` use it without being asked: a real video tracks exactly what its config and options say."""
+    return TrackerConfig(
+        markers=MarkersConfig(lengths_m=dict(DEMO_LENGTHS_M)), boards=(DEMO_BOARD,), source="<demo defaults>"
+    )
+
+
+def load_config(path: str | os.PathLike[str] | None = None, *, demo: bool = False) -> TrackerConfig:
+    """Read a tracker TOML file (None: the built-in defaults, identical to ``configs/default.toml``: no
+    boards, no per-id sizes; with ``demo``: :func:`demo_config`, identical to ``configs/demo.toml``)."""
     if path is None:
-        return TrackerConfig()
+        return demo_config() if demo else TrackerConfig()
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {path}: not found")

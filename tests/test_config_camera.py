@@ -17,6 +17,7 @@ from ar_anchor.config import (
     PoseConfig,
     RecordingConfig,
     TrackerConfig,
+    demo_config,
     load_config,
     parse_config,
 )
@@ -44,7 +45,21 @@ def test_default_toml_equals_dataclass_defaults():
     # then it is the dataclass defaults in every field except where it came from
     assert loaded.source == str(DEFAULT_TOML)
     assert dataclasses.replace(loaded, source="x") == dataclasses.replace(TrackerConfig(), source="x")
-    # (spot-check the parts most likely to drift, so a failure says which)
+    # (spot-check the parts most likely to drift, so a failure says which): lone markers of one size,
+    # no demo board and no per-id sizes leak into a real run
+    assert loaded.boards == ()
+    assert dict(loaded.markers.lengths_m) == {}
+    assert loaded.marker_length(7) == 0.05
+    assert loaded.marker_length(12) == 0.05
+    assert loaded.board_of(12) is None
+
+
+def test_demo_toml_equals_demo_defaults():
+    # given the shipped demo config file
+    loaded = load_config(REPO / "configs" / "demo.toml")
+    # then it is what `ar-anchor demo` uses without --config: the defaults plus the desk board and marker 7
+    assert dataclasses.replace(loaded, source="x") == dataclasses.replace(demo_config(), source="x")
+    assert load_config(None, demo=True) == demo_config()
     assert loaded.boards == (
         BoardConfig(name="desk", cols=2, rows=2, marker_length_m=0.04, separation_m=0.02, first_id=10),
     )

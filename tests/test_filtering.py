@@ -10,7 +10,7 @@ import pytest
 
 from ar_anchor.bench import Scenario, evaluate, run_scenario
 from ar_anchor.camera import CameraModel
-from ar_anchor.config import FilterConfig, TrackerConfig
+from ar_anchor.config import FilterConfig, demo_config
 from ar_anchor.filtering import RotationFilter, TargetTrack, TranslationFilter, pose_covariance
 from ar_anchor.geometry import Pose, angle_between_deg, marker_corners_in_marker, matrix_from_rvec
 from ar_anchor.pose import MarkerPose, PoseHypothesis
@@ -199,7 +199,7 @@ CAMERA = CameraModel.from_fov(960, 540, 750.0)
 
 
 def scenario_metrics(scenario: Scenario) -> dict:
-    config = TrackerConfig()
+    config = demo_config()
     return evaluate(run_scenario(scenario, config, CAMERA), config)
 
 
@@ -251,7 +251,7 @@ def test_no_filter_is_the_raw_pipeline(camera):
     from ar_anchor.sources.synthetic import SyntheticSource, demo_scene
     from ar_anchor.tracker import Tracker
 
-    config = TrackerConfig()
+    config = demo_config()
     raw_config = dataclasses.replace(config, filter=dataclasses.replace(config.filter, enabled=False))
     source = SyntheticSource(demo_scene(config, camera, frames=3))
     tracker = Tracker(raw_config, camera)

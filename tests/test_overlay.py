@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from ar_anchor.camera import CameraModel
-from ar_anchor.config import OverlayConfig, TrackerConfig, load_config
+from ar_anchor.config import OverlayConfig, TrackerConfig, demo_config, load_config
 from ar_anchor.corners import refine_corners_by_edges
 from ar_anchor.detection import MarkerDetections
 from ar_anchor.errors import ConfigError
@@ -28,7 +28,7 @@ DARK = (30, 30, 30)
 
 
 def cube_only(target: str, **kwargs) -> TrackerConfig:
-    return dataclasses.replace(TrackerConfig(), overlays=(OverlayConfig(target=target, kind="cube", **kwargs),))
+    return dataclasses.replace(demo_config(), overlays=(OverlayConfig(target=target, kind="cube", **kwargs),))
 
 
 def distorted_camera() -> CameraModel:
@@ -121,7 +121,7 @@ def test_nearer_object_hides_the_farther_one(camera):
     # given a red cube near the camera and a green one farther away, overlapping in the image
     near, far = facing(0.45), facing(0.70, x=0.05)
     config = dataclasses.replace(
-        TrackerConfig(),
+        demo_config(),
         overlays=(
             OverlayConfig(target="marker:1", kind="cube", colour=(230, 20, 20), colour_set=True),
             OverlayConfig(target="marker:2", kind="cube", colour=(20, 230, 20), colour_set=True),
@@ -152,7 +152,7 @@ def test_a_face_pointing_away_from_the_camera_is_never_drawn(tmp_path, camera, c
     # given a one-triangle mesh whose normal faces the camera (+z of a marker facing it) or away from it
     mesh = one_triangle_obj(tmp_path / "tri.obj", counter_clockwise)
     config = dataclasses.replace(
-        TrackerConfig(),
+        demo_config(),
         overlays=(OverlayConfig(target="marker:1", kind="mesh", path=str(mesh), colour=(250, 250, 250)),),
     )
     pose = Pose(np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, 0.5]))  # straight ahead, its +z toward the camera
@@ -178,7 +178,7 @@ def test_ambiguous_and_predicted_targets_are_drawn_translucent(camera):
 
 def test_board_anchor_frame_is_centred_with_z_out_of_the_board(camera):
     # given a 2x2 grid board (OpenCV frame: origin top-left, y down, z into the board)
-    config = TrackerConfig()
+    config = demo_config()
     tracker = Tracker(config, camera)
     outline = tracker.outline("board:desk")
     target = TargetResult("board:desk", "tracked", Pose.identity(), None, 0.0, 1.0, 0.04, outline_in_target=outline)
@@ -268,7 +268,7 @@ def test_mesh_path_is_relative_to_the_config_file(tmp_path):
 
 
 def test_default_overlays_skip_board_members():
-    config = TrackerConfig()
+    config = demo_config()
     assert [o.kind for o in config.overlays_for("marker:0")] == ["cube"]
     assert config.overlays_for("marker:10") == ()  # a desk marker: the board carries the model
     assert [o.kind for o in config.overlays_for("board:desk")] == ["mesh"]
@@ -303,7 +303,7 @@ def test_a_missing_mesh_file_stops_the_run_before_any_output(tmp_path):
 def test_an_opaque_model_hides_the_background_completely(camera):
     # given the built-in pin (a ball overlapping a cone) seen from above its tip, on white and on black
     config = dataclasses.replace(
-        TrackerConfig(), overlays=(OverlayConfig(target="board:*", kind="mesh", path="builtin:pin", size_m=0.1),)
+        demo_config(), overlays=(OverlayConfig(target="board:*", kind="mesh", path="builtin:pin", size_m=0.1),)
     )
     renderer = OverlayRenderer(config, camera)
     pose = Pose(np.array([np.pi + 0.2, 0.1, 0.0]), np.array([0.0, 0.0, 0.5]))
@@ -342,7 +342,7 @@ def test_recording_holds_overlay_image_meshes_and_camera_trajectory(tmp_path):
 
 
 def test_axes_are_drawn_in_their_colours_along_the_target_axes(camera):
-    config = dataclasses.replace(TrackerConfig(), overlays=(OverlayConfig(target="*", kind="axes", size_m=0.05),))
+    config = dataclasses.replace(demo_config(), overlays=(OverlayConfig(target="*", kind="axes", size_m=0.05),))
     pose = facing(0.5)
     image = OverlayRenderer(config, camera).annotate(
         np.zeros((camera.height, camera.width, 3), np.uint8), synthetic_result(camera, {"marker:2": (pose, "tracked")})

@@ -352,6 +352,11 @@ def test_replay_of_a_real_video(realdata, tmp_path):
     assert summary["source_ended_early"] is False
     rows = read_poses(tmp_path / "out" / "poses.csv")
     assert rows and max(int(r["frame"]) for r in rows) <= 148
+    # and exactly what was asked is tracked: no demo board (its ids 10-13 are on this sheet too), so
+    # markers 10-13 are lone markers of --marker-length like the rest
+    targets = {r["target"] for r in rows}
+    assert not any(t.startswith("board:") for t in targets), sorted(targets)
+    assert {"marker:10", "marker:12"} <= targets
     verify_rrd(tmp_path / "out" / "recording.rrd")
 
 

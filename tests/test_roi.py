@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ar_anchor.camera import CameraModel
-from ar_anchor.config import BoardConfig, DetectorConfig, MarkersConfig, TrackerConfig
+from ar_anchor.config import BoardConfig, DetectorConfig, MarkersConfig, TrackerConfig, demo_config
 from ar_anchor.detection import Detector, Region, plan_regions
 from ar_anchor.geometry import Pose, angle_between_deg
 from ar_anchor.sources.base import Frame
@@ -32,7 +32,7 @@ def orbit_frames(frames: int = 40, markers=((0, 0.05, (0.0, 0.0)),), size=(1280,
 
 
 def tracker_config(roi: bool, ids=(0,), **detector) -> TrackerConfig:
-    config = TrackerConfig()
+    config = demo_config()
     return dataclasses.replace(
         config,
         boards=(),

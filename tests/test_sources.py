@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ar_anchor.camera import CameraModel
-from ar_anchor.config import TrackerConfig
+from ar_anchor.config import demo_config
 from ar_anchor.errors import SourceError
 from ar_anchor.sources import ImageFolderSource, VideoFileSource, open_file_source
 from ar_anchor.sources.files import natural_key, to_bgr8
@@ -21,7 +21,7 @@ from ar_anchor.sources.synthetic import SyntheticSource, demo_scene
 
 def small_scene(frames: int = 12, fps: float = 30.0):
     camera = CameraModel.from_fov(320, 240, 300.0)
-    return demo_scene(TrackerConfig(), camera, frames=frames, fps=fps, noise_sigma=1.0, blur_sigma=0.0)
+    return demo_scene(demo_config(), camera, frames=frames, fps=fps, noise_sigma=1.0, blur_sigma=0.0)
 
 
 def test_natural_order_puts_frame_2_before_frame_10():
