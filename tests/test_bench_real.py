@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
 from pathlib import Path
 
 import cv2
@@ -22,7 +23,12 @@ from ar_anchor.cli import main
 from ar_anchor.geometry import marker_corners_in_marker
 from ar_anchor.layouts import layout_from_mapping
 
-RIGID_SHEET = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "rigid_sheet.py"
+# ../shared/tools/rigid_sheet.py: beside $AR_ANCHOR_REALDATA when set, else beside the repository
+RIGID_SHEET = (
+    Path(os.environ["AR_ANCHOR_REALDATA"]).parent
+    if os.environ.get("AR_ANCHOR_REALDATA")
+    else Path(__file__).resolve().parents[1].parent / "shared"
+) / "tools" / "rigid_sheet.py"
 SCORE_KEYS = ("pair_frames", "flip_pct", "rel_rot_rms_deg", "rel_trans_rms_mm", "marker_frames")
 LENGTH_M = 0.04
 # marker id -> centre on the sheet (metres), x right, y up
@@ -129,6 +135,7 @@ def test_layout_relative_poses_and_scoring_against_the_layout():
     poses = _sheet_poses()
     clean = score_against_layout(poses, _layout())
     assert clean["pair_frames"] == 120 and clean["flips"] == 0
+    assert clean["distance_ratio"] == pytest.approx(1.0) and clean["mean_offset_rms_deg"] == pytest.approx(0, abs=1e-5)
     assert clean["rel_rot_rms_deg"] == pytest.approx(0.0, abs=1e-5)
     assert clean["rel_trans_rms_mm"] == pytest.approx(0.0, abs=1e-9)
     # a marker the layout lacks: its pairs are left out
@@ -223,6 +230,7 @@ def test_bench_real_on_chessboard_video(realdata, rigid_sheet, tmp_path, monkeyp
     assert plain["rel_rot_rms_deg"] == pytest.approx(3.73, abs=0.01)
     assert plain["rel_trans_rms_mm"] == pytest.approx(13.2, abs=0.05)
     assert plain["vs_layout"]["pair_frames"] > 0
+    assert 0.9 < plain["vs_layout"]["distance_ratio"] < 1.1 and plain["vs_layout"]["mean_offset_rms_deg"] < 10
 
     # the tracker: sanity only (the filter is being reworked)
     assert results["speed"]["frames"] == 149 and results["speed"]["tracker_fps"] > 0
