@@ -1014,8 +1014,7 @@ class SyntheticSource:
         exposure, readout = scene.exposure_s, scene.rolling_shutter_s
         start, stop = t_s - exposure / 2, t_s + readout + exposure / 2
         probe = np.linspace(start, stop, 5)
-        n = int(math.ceil(self._image_motion_px(probe) / _SUBFRAME_PX)) + 1
-        n = min(max(n, 2 if readout > 0 else 1), scene.max_subframes)
+        n = min(int(math.ceil(self._image_motion_px(probe) / _SUBFRAME_PX)) + 1, scene.max_subframes)
         if n == 1:
             return np.array([t_s]), np.ones((height, 1))
         nodes = np.linspace(start, stop, n)
