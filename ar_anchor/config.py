@@ -228,7 +228,7 @@ class FilterConfig:
     still_translation_m_sqrt_s: float = 1e-5
     angular_accel_moving_rad_s2: float = 30.0  # white acceleration of the "moving" motion model
     linear_accel_moving_m_s2: float = 5.0
-    window: int = 60  # frames of flip evidence kept
+    evidence_window_s: float = 2.0  # seconds of flip evidence kept
     decide_margin_px: float = 0.06  # error differences below this never decide (detector bias)
     decide_z: float = 3.0  # standard errors of confidence to commit
     switch_margin_px: float = 0.3  # stronger evidence needed to leave a committed branch
@@ -236,14 +236,23 @@ class FilterConfig:
     evidence_noise_px: float = 0.1  # prior per-frame evidence spread (a few frames' worth)
     evidence_cap_px: float = 3.0  # one frame's evidence is clipped to this
     single_solution_evidence_px: float = 2.0  # evidence when the other solution failed validation
-    motion_weight_px_per_deg: float = 0.0  # evidence per degree of better agreement with the predicted motion
-    max_missed_frames: int = 10  # predict through gaps this long, then reset
-    flip_angle_deg: float = 10.0  # an orientation jump above this ...
-    flip_translation_m: float = 0.01  # ... with less motion than this is a flip, not motion
-    flip_persist_frames: int = 3  # ... unless it persists longer than this
-    max_output_step_deg: float = 8.0  # the output turns at most this much per frame (slews instead of snapping)
+    decisive_ratio: float = 3.0  # one frame decides alone when the other solution's error is this many times ...
+    decisive_sigmas: float = 4.0  # ... and this many corner-noise sigmas worse ...
+    decisive_px: float = 0.1  # ... and at least this much (or the other failed validation)
+    decisive_frames: int = 2  # consecutive decisive frames against the output branch move it there
+    predict_s: float = 0.2  # publish predictions through gaps at most this long (state "predicted")
+    predict_damping_s: float = 0.1  # a prediction's velocity decays with this time constant
+    predict_max_deg: float = 1.0  # ... and it is published only while it may be off by less than this
+    memory_s: float = 2.0  # a lost target keeps its track (flip memory) this long, then is reset
+    restart_gap_s: float = 0.1  # after a gap longer than this the smoothers restart from the measurement
+    still_s: float = 0.3  # a target whose measurements stayed within their noise this long is still:
+    output_sigmas: float = 3.0  # its output stays within this many standard deviations of the measurement,
+    output_sigmas_moving: float = 0.5  # a moving one's within this many
+    reset_angle_deg: float = 15.0  # a branch's measurement this far from its smoother restarts it
+    max_angular_rate_deg_s: float = 720.0  # the smoothers' angular velocity is bounded by this
+    flip_angle_deg: float = 10.0  # orientation uncertainty (3 sigma) above this is not vouched for as tracked
     tilt_accel_rad_s2: float = 3.0  # motion model of the tilt that tells the two branches apart
-    crossing_blind_frames: int = 8  # branches indistinguishable longer than this: the commitment ends
+    crossing_blind_s: float = 0.3  # branches indistinguishable longer than this: the commitment ends
 
 
 @dataclass(frozen=True)
@@ -620,7 +629,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
             "angular_accel_moving_rad_s2", float, fd.angular_accel_moving_rad_s2, _positive
         ),
         linear_accel_moving_m_s2=ft.take("linear_accel_moving_m_s2", float, fd.linear_accel_moving_m_s2, _positive),
-        window=ft.take("window", int, fd.window, _in_range(1, 10_000)),
+        evidence_window_s=ft.take("evidence_window_s", float, fd.evidence_window_s, _in_range(0.01, 3600.0)),
         decide_margin_px=ft.take("decide_margin_px", float, fd.decide_margin_px, _non_negative),
         decide_z=ft.take("decide_z", float, fd.decide_z, _non_negative),
         switch_margin_px=ft.take("switch_margin_px", float, fd.switch_margin_px, _non_negative),
@@ -630,14 +639,23 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         single_solution_evidence_px=ft.take(
             "single_solution_evidence_px", float, fd.single_solution_evidence_px, _non_negative
         ),
-        motion_weight_px_per_deg=ft.take("motion_weight_px_per_deg", float, fd.motion_weight_px_per_deg, _non_negative),
-        max_missed_frames=ft.take("max_missed_frames", int, fd.max_missed_frames, _in_range(0, 100_000)),
+        decisive_ratio=ft.take("decisive_ratio", float, fd.decisive_ratio, _in_range(1.0, 1e6)),
+        decisive_sigmas=ft.take("decisive_sigmas", float, fd.decisive_sigmas, _non_negative),
+        decisive_px=ft.take("decisive_px", float, fd.decisive_px, _non_negative),
+        decisive_frames=ft.take("decisive_frames", int, fd.decisive_frames, _in_range(1, 1000)),
+        predict_s=ft.take("predict_s", float, fd.predict_s, _in_range(0.0, 60.0)),
+        predict_damping_s=ft.take("predict_damping_s", float, fd.predict_damping_s, _in_range(0.001, 60.0)),
+        predict_max_deg=ft.take("predict_max_deg", float, fd.predict_max_deg, _in_range(0.0, 180.0)),
+        memory_s=ft.take("memory_s", float, fd.memory_s, _in_range(0.0, 3600.0)),
+        restart_gap_s=ft.take("restart_gap_s", float, fd.restart_gap_s, _in_range(0.0, 60.0)),
+        still_s=ft.take("still_s", float, fd.still_s, _in_range(0.0, 60.0)),
+        output_sigmas=ft.take("output_sigmas", float, fd.output_sigmas, _in_range(0.0, 100.0)),
+        output_sigmas_moving=ft.take("output_sigmas_moving", float, fd.output_sigmas_moving, _in_range(0.0, 100.0)),
+        reset_angle_deg=ft.take("reset_angle_deg", float, fd.reset_angle_deg, _in_range(0.1, 180.0)),
+        max_angular_rate_deg_s=ft.take("max_angular_rate_deg_s", float, fd.max_angular_rate_deg_s, _in_range(1.0, 1e5)),
         flip_angle_deg=ft.take("flip_angle_deg", float, fd.flip_angle_deg, _in_range(0.0, 180.0)),
-        flip_translation_m=ft.take("flip_translation_m", float, fd.flip_translation_m, _non_negative),
-        flip_persist_frames=ft.take("flip_persist_frames", int, fd.flip_persist_frames, _in_range(0, 10_000)),
-        max_output_step_deg=ft.take("max_output_step_deg", float, fd.max_output_step_deg, _in_range(0.1, 180.0)),
         tilt_accel_rad_s2=ft.take("tilt_accel_rad_s2", float, fd.tilt_accel_rad_s2, _positive),
-        crossing_blind_frames=ft.take("crossing_blind_frames", int, fd.crossing_blind_frames, _in_range(0, 10_000)),
+        crossing_blind_s=ft.take("crossing_blind_s", float, fd.crossing_blind_s, _in_range(0.0, 3600.0)),
     )
     ft.done()
 

@@ -379,19 +379,29 @@ def tilt_of(pose: Pose) -> np.ndarray:
 class _TiltTracker:
     """Constant-velocity Kalman filter on branch 0's tilt (2D), used only to tell the branches apart.
 
-    Each frame offers a mirror pair of tilts; branch 0 takes the one nearer the prediction. When the
-    two are about equally near (the solutions cross and the noise hides which is which) the filter
-    coasts on its velocity instead of guessing, and the branches are re-identified once they part.
+    Each frame offers a mirror pair of tilts; branch 0 takes the one nearer the prediction, so a view
+    through fronto-parallel (the solutions cross) keeps each branch on its own side: the rate carries
+    it through. The filter can never go blind: a frame whose choice is unclear (the two candidates about
+    equally near) still updates it, with the measurement noise inflated by that unclarity; the rate is
+    bounded and the uncertainty capped, so after a dropout or a run of noisy frames it is back at once.
     """
+
+    _MAX_RATE = 4.0  # tilt (sine) per second: a quarter-turn in about 0.25 s
+    _MAX_SIGMA = 0.5  # cap on the tilt's standard deviation (sine units)
 
     def __init__(self, tilt: np.ndarray, sigma: float, accel: float) -> None:
         self.kf = _KalmanFilter(dim_x=4, dim_z=2)
         self.kf.H = np.hstack([np.eye(2), np.zeros((2, 2))])
+        self.accel = accel
+        self.blind_s = 0.0  # how long the choice has been unclear
+        self._dt: float | None = None
+        self.reset(tilt, sigma)
+
+    def reset(self, tilt: np.ndarray, sigma: float) -> None:
+        """Start again at ``tilt`` at rest (after a long gap the old rate means nothing)."""
         self.kf.x = np.concatenate([tilt, np.zeros(2)]).reshape(4, 1)
         self.kf.P = np.diag([sigma**2, sigma**2, 1.0, 1.0])
-        self.accel = accel
-        self.blind = 0  # consecutive frames without a clear decision
-        self._dt: float | None = None
+        self.blind_s = 0.0
 
     @property
     def tilt(self) -> np.ndarray:
@@ -404,52 +414,79 @@ class _TiltTracker:
             self._f[0, 2] = self._f[1, 3] = dt
             self._q = np.kron(self.accel**2 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]), np.eye(2))
         self.kf.predict(F=self._f, Q=self._q)
+        self._bound()
 
-    def choose(self, candidate: np.ndarray, sigma: float) -> tuple[bool, bool]:
-        """Is ``candidate`` (rather than its mirror) branch 0's tilt, and is that clear? Updates when clear."""
+    def _bound(self) -> None:
+        rate = self.kf.x[2:, 0]
+        speed = float(np.linalg.norm(rate))
+        if speed > self._MAX_RATE:
+            self.kf.x[2:, 0] = rate * (self._MAX_RATE / speed)
+        block = self.kf.P[:2, :2]
+        largest = float(np.max(np.linalg.eigvalsh(block)))
+        if largest > self._MAX_SIGMA**2:
+            self.kf.P[:2, :] *= math.sqrt(self._MAX_SIGMA**2 / largest)
+            self.kf.P[:, :2] *= math.sqrt(self._MAX_SIGMA**2 / largest)
+
+    def choose(self, first: np.ndarray, second: np.ndarray | None, sigma: float, dt: float) -> tuple[bool, bool]:
+        """Is ``first`` (rather than ``second``, by default its mirror) branch 0's tilt, and is that clear?
+
+        The pair is matched as a whole: branch 0 near the prediction and branch 1 near its mirror. Always
+        updates (an unclear choice with its noise inflated by the unclarity)."""
         predicted = self.tilt
-        near = float(np.linalg.norm(candidate - predicted))
-        mirror = float(np.linalg.norm(-candidate - predicted))
+        second = -first if second is None else second
+        straight = float(np.linalg.norm(first - predicted) + np.linalg.norm(second + predicted))
+        swapped = float(np.linalg.norm(second - predicted) + np.linalg.norm(first + predicted))
         spread = math.sqrt(float(np.trace(self.kf.P[:2, :2])) + 2 * sigma**2)
-        is_branch0 = near <= mirror
-        clear = abs(near - mirror) > spread
-        if clear:
-            self.blind = 0
-            self.kf.update((candidate if is_branch0 else -candidate).reshape(2, 1), R=np.eye(2) * sigma**2)
-        else:
-            self.blind += 1
+        is_branch0 = straight <= swapped
+        clear = 0.5 * abs(straight - swapped) > spread
+        self.blind_s = 0.0 if clear else self.blind_s + dt
+        noise = sigma**2 if clear else sigma**2 + spread**2
+        self.kf.update((first if is_branch0 else second).reshape(2, 1), R=np.eye(2) * noise)
+        self._bound()
         return is_branch0, clear
+
+
+@dataclass
+class _Branch:
+    """One IPPE solution's history: its smoother and its last measurement."""
+
+    smoother: RotationFilter
+    last: np.ndarray  # rotation of the last measurement assigned to this branch
 
 
 class TargetTrack:
     """The filter state of one target (see the module doc)."""
 
+    _RECENT_S = 0.3  # the best guess of an undecided target leans on this much recent evidence
+
     def __init__(self, config: FilterConfig, points_in_target: np.ndarray) -> None:
         self.config = config
         self.points = np.asarray(points_in_target, dtype=np.float64)
-        self.branches: list[RotationFilter | None] | None = None  # None: no track
+        self.branches: list[_Branch | None] | None = None  # None: no track
         self.tilts: _TiltTracker | None = None
-        self._pending_events: list[TrackEvent] = []
-        self.doubtful = False
         self.output_branch = 0
         self.committed: int | None = None
-        self.evidence: collections.deque[float] = collections.deque(maxlen=config.window)
+        self.evidence: collections.deque[tuple[int, float]] = collections.deque()  # (timestamp_ns, px)
         self.translation_filter: TranslationFilter | None = None
-        self.last_ns: int | None = None
-        self.missed = 0
+        self.last_ns: int | None = None  # the last frame seen (measured or not)
+        self.measured_ns: int | None = None  # the last frame measured
         self.sigma_px = config.corner_noise_px
-        self.output_rotation: np.ndarray | None = None
-        self.output_translation: np.ndarray | None = None
-        self.slewing = False
-        self.pending_flip = 0
+        self._frame_sigma = config.corner_noise_px
+        self.against = 0  # consecutive decisive frames against the output branch
+        self.doubtful = False  # this frame's assignment of solutions to branches is in doubt
         self.frames = 0
+        self._output: Pose | None = None  # the last published measured output
+        self._velocity: tuple[np.ndarray, np.ndarray] = (np.zeros(3), np.zeros(3))  # omega (body), v (camera)
+        self._rate = math.inf  # last measured rate of change (turn + shift / distance), rad/s
+        self._history: collections.deque[tuple[int, int, Pose]] = collections.deque()  # (branch, ns, measured)
         self._covariances: dict[int, tuple[Pose, tuple[np.ndarray, np.ndarray]]] = {}  # this frame's, by pose
 
-    def _covariance(self, pose: Pose, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
-        """:func:`pose_covariance` of one of this frame's poses (each is asked for up to three times)."""
+    def _covariance(self, pose: Pose, camera: CameraModel, sigma_px: float | None = None) -> tuple[np.ndarray, ...]:
+        """:func:`pose_covariance` of one of this frame's poses (each is asked for several times)."""
         cached = self._covariances.get(id(pose))
         if cached is None or cached[0] is not pose:
-            cached = self._covariances[id(pose)] = (pose, pose_covariance(pose, self.points, camera, self.sigma_px))
+            sigma = self._frame_sigma if sigma_px is None else sigma_px
+            cached = self._covariances[id(pose)] = (pose, pose_covariance(pose, self.points, camera, sigma))
         return cached[1]
 
     @property
@@ -457,11 +494,14 @@ class TargetTrack:
         return self.branches is not None
 
     # ------------------------------------------------------------------ evidence
+    def _window(self, since_ns: int) -> np.ndarray:
+        return np.fromiter((v for t, v in self.evidence if t >= since_ns), dtype=np.float64)
+
     def _evidence_bound(self, margin: float, z: float) -> float:
         """Lower confidence bound of |mean difference| above ``margin``, signed (+ favours branch 0)."""
         if not self.evidence:
             return 0.0
-        values = np.fromiter(self.evidence, dtype=np.float64)
+        values = np.fromiter((v for _, v in self.evidence), dtype=np.float64)
         mean = float(values.mean())
         # per-frame spread, shrunk toward the configured floor as if it were a few frames of prior data:
         # one or two frames cannot claim to be precise, thirty consistent ones can
@@ -495,59 +535,102 @@ class TargetTrack:
             bound = self._evidence_bound(cfg.switch_margin_px * self._margin_scale(), cfg.switch_z)
             favoured = None if bound == 0.0 else (0 if bound > 0 else 1)
             if favoured is not None and favoured != self.committed:
-                events.append(
-                    TrackEvent(
-                        "switch",
-                        f"switched from branch {self.committed} to {favoured} on sustained evidence ({bound:+.3f} px)",
-                    )
-                )
-                self.committed = favoured
-                self.evidence.clear()
+                self._switch(favoured, f"on sustained evidence ({bound:+.3f} px)", events)
 
-    def _best_guess(self) -> int:
-        """While ambiguous: keep the current output branch (a steady guess) unless the evidence leans the
-        other way by half the decision margin with 2 standard errors: not enough to vouch for, enough to prefer."""
-        bound = self._evidence_bound(0.5 * self.config.decide_margin_px * self._margin_scale(), 2.0)
-        if bound == 0.0 or self.branches is None or self.branches[0 if bound > 0 else 1] is None:
-            return self.output_branch
-        return 0 if bound > 0 else 1
+    def _switch(self, branch: int, why: str, events: list[TrackEvent]) -> None:
+        events.append(TrackEvent("switch", f"switched from branch {self.committed} to {branch} {why}"))
+        self.committed = branch
+        latest = self.evidence[-1] if self.evidence else None
+        self.evidence.clear()
+        if latest is not None:
+            self.evidence.append(latest)
+        self.against = 0
+
+    def _verdict(self, assigned: list[PoseHypothesis | None]) -> tuple[int | None, int | None]:
+        """What this frame alone says: the branch it vouches for (the only solution, or the one the other
+        reprojects ``decisive_ratio`` times and ``decisive_sigmas`` corner-noise standard deviations, at
+        least ``decisive_px``, worse), and the branch it leans to (the other reprojects twice as badly and
+        worse by more than the decision margin). Either is None when the frame says nothing."""
+        cfg = self.config
+        if assigned[0] is None or assigned[1] is None:
+            only = None if assigned[0] is None and assigned[1] is None else (0 if assigned[0] is not None else 1)
+            return only, only
+        low, high = sorted((0, 1), key=lambda i: assigned[i].reproj_px)  # type: ignore[union-attr]
+        better, worse = assigned[low].reproj_px, assigned[high].reproj_px  # type: ignore[union-attr]
+        floor = max(cfg.decisive_px * self._margin_scale(), cfg.decisive_sigmas * self._frame_sigma)
+        strong = low if worse - better >= floor and worse >= cfg.decisive_ratio * better else None
+        lean = low if worse - better > cfg.decide_margin_px * self._margin_scale() and worse >= 2.0 * better else None
+        return strong, lean
+
+    def _best_guess(self, decisive: int | None) -> int:
+        """While undecided: this frame's decisive solution if there is one, else the branch the recent
+        evidence leans to (by more than half the decision margin), else the current output branch: a
+        steady guess that follows the per-frame pick's tendency without its flicker."""
+        if decisive is not None:
+            return decisive
+        assert self.last_ns is not None
+        recent = self._window(self.last_ns - int(self._RECENT_S * 1e9))
+        if recent.size:
+            mean = float(recent.mean())
+            if abs(mean) > 0.5 * self.config.decide_margin_px * self._margin_scale():
+                return 0 if mean > 0 else 1
+        return self.output_branch
 
     # ------------------------------------------------------------------ per frame
     def update(
         self, measurement: MarkerPose | BoardPose | None, timestamp_ns: int, camera: CameraModel
     ) -> TrackUpdate | None:
-        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen)."""
-        dt = (
-            1.0 / 30.0 if self.last_ns is None or timestamp_ns <= self.last_ns else (timestamp_ns - self.last_ns) * 1e-9
-        )
+        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen).
+
+        Returns None when there is nothing to publish: no track, a gap too long to predict through
+        (the track stays :attr:`alive`, keeping its flip memory, until ``memory_s``), or a reset.
+        """
+        if self.last_ns is not None and timestamp_ns <= self.last_ns:
+            timestamp_ns = self.last_ns + 1  # a repeated or backward timestamp: no time has passed
         self.last_ns = timestamp_ns
         events: list[TrackEvent] = []
-        self._pending_events = events
-        self.doubtful = False
         self._covariances.clear()
         if measurement is None:
-            return self._coast(dt, events)
-        # the correspondences of this frame (a board's visible markers change from frame to frame)
+            return self._coast(timestamp_ns, events)
         self.points = np.asarray(measurement.points_in_target, dtype=np.float64)
         self._update_noise(measurement)
+        gap_s = math.inf if self.measured_ns is None else (timestamp_ns - self.measured_ns) * 1e-9
+        self.measured_ns = timestamp_ns
+        self.frames += 1
+        self.doubtful = False
         if self.branches is None:
-            hypotheses = self._start(measurement, camera)
+            assigned = self._start(measurement, camera)
             events.append(TrackEvent("start", "track started"))
         else:
-            self.missed = 0
-            self.frames += 1
-            for branch in self.branches:
-                if branch is not None:
-                    branch.predict(dt)
-            assert self.translation_filter is not None
-            self.translation_filter.predict(dt)
-            assigned = self._associate(measurement, camera, dt)
-            self._add_evidence(assigned)
-            self._update_branches(assigned, camera, events)
-            self._update_translation(measurement, camera)
-            hypotheses = tuple(h.pose if h is not None else None for h in assigned)
+            restart = gap_s > self.config.restart_gap_s
+            if restart:
+                events.append(TrackEvent("reacquired", f"seen again after {gap_s:.2f} s"))
+            assigned = self._associate(measurement, camera, gap_s, restart, events)
+            self._update_branches(assigned, camera, gap_s, restart)
+            self._update_translation(measurement, camera, gap_s, restart)
+        if not self.doubtful:
+            self._add_evidence(assigned, timestamp_ns)
         self._decide(events)
-        target = self.committed if self.committed is not None else self._best_guess()
+        decisive, lean = self._verdict(assigned)
+        if self.committed is not None:
+            # Self-correcting: a run of frames that contradict the commitment (started by a decisive one,
+            # continued by decisive or leaning ones) moves it after ``decisive_frames``; while such a run
+            # is open the output is this frame's lower-error solution, and nothing is vouched for.
+            favoured = decisive if decisive is not None else lean
+            if favoured == self.committed:
+                self.against = 0
+            elif favoured is not None and (decisive is not None or self.against > 0):
+                self.against += 1
+                if self.against >= self.config.decisive_frames:
+                    self._switch(favoured, f"on {self.against} contradicting frames", events)
+        if self.committed is None:
+            target = self._best_guess(decisive)
+        elif (self.against > 0 or self.doubtful) and assigned[0] is not None and assigned[1] is not None:
+            target = 0 if assigned[0].reproj_px <= assigned[1].reproj_px else 1
+        else:
+            target = self.committed
+        if assigned[target] is None and assigned[1 - target] is not None:
+            target = 1 - target  # the only solution this frame (the other failed validation) is shown
         if target != self.output_branch and self.branches is not None and self.branches[target] is not None:
             events.append(
                 TrackEvent(
@@ -556,203 +639,282 @@ class TargetTrack:
                 )
             )
             self.output_branch = target
-            self.slewing = True
-        return self._result("tracked" if self.committed == self.output_branch else "ambiguous", hypotheses, events)
+        pose, covariance = self._measured_output(assigned, camera)
+        vouched = (
+            self.committed is not None
+            and self.committed == self.output_branch
+            and assigned[self.output_branch] is not None
+            and decisive in (None, self.output_branch)
+            and self.against == 0
+            and not self.doubtful
+            and self._raw_pick(assigned) in (None, self.output_branch)
+            and not self._too_uncertain(covariance)
+        )
+        hypotheses = (
+            assigned[0].pose if assigned[0] is not None else None,
+            assigned[1].pose if assigned[1] is not None else None,
+        )
+        update = self._result("tracked" if vouched else "ambiguous", pose, hypotheses, events)
+        self._output = pose
+        return update
 
-    def _start(self, measurement: MarkerPose, camera: CameraModel) -> tuple[Pose | None, Pose | None]:
+    def _start(self, measurement: MarkerPose | BoardPose, camera: CameraModel) -> list[PoseHypothesis | None]:
         cfg = self.config
         hypotheses = measurement.hypotheses
         self.branches = [self._new_branch(h.pose, camera) for h in hypotheses]
+        if len(self.branches) == 1:
+            self.branches.append(None)  # the other solution failed validation: unknown until it shows up
         self.tilts = _TiltTracker(
             tilt_of(hypotheses[0].pose), self._tilt_sigma(hypotheses[0].pose, camera), cfg.tilt_accel_rad_s2
         )
-        if len(self.branches) == 1:
-            self.branches.append(None)  # the other solution failed validation: unknown until it shows up
         self.output_branch = 0
         self.committed = None
         self.evidence.clear()
-        self.frames = 1
-        self.missed = 0
-        if len(hypotheses) == 1:
-            self.evidence.append(cfg.single_solution_evidence_px)
-        else:
-            self.evidence.append(
-                float(
-                    np.clip(
-                        hypotheses[1].reproj_px - hypotheses[0].reproj_px, -cfg.evidence_cap_px, cfg.evidence_cap_px
-                    )
-                )
-            )
+        self.against = 0
         best = hypotheses[0].pose
         _, cov_t = self._covariance(best, camera)
         self.translation_filter = TranslationFilter(
             best.tvec, cov_t, cfg.still_translation_m_sqrt_s, cfg.linear_accel_moving_m_s2
         )
-        self.output_rotation = best.rotation
-        self.slewing = False
-        return (hypotheses[0].pose, hypotheses[1].pose if len(hypotheses) > 1 else None)
+        return [hypotheses[0], hypotheses[1] if len(hypotheses) > 1 else None]
 
-    def _new_branch(self, pose: Pose, camera: CameraModel) -> RotationFilter:
+    def _new_branch(self, pose: Pose, camera: CameraModel) -> _Branch:
         cov_rot, _ = self._covariance(pose, camera)
-        return RotationFilter(
+        smoother = RotationFilter(
             pose.rotation, cov_rot, self.config.still_rotation_rad_sqrt_s, self.config.angular_accel_moving_rad_s2
         )
+        return _Branch(smoother, pose.rotation)
 
     def _tilt_sigma(self, pose: Pose, camera: CameraModel) -> float:
         cov_rot, _ = self._covariance(pose, camera)
         return math.sqrt(float(np.max(np.linalg.eigvalsh(cov_rot))))
 
-    def _associate(self, measurement: MarkerPose, camera: CameraModel, dt: float) -> list[PoseHypothesis | None]:
-        """Assign this frame's solutions to the branches: branch 0 is the one whose tilt continues
-        the tilt tracker's prediction (see :class:`_TiltTracker`)."""
+    def _associate(
+        self,
+        measurement: MarkerPose | BoardPose,
+        camera: CameraModel,
+        gap_s: float,
+        restart: bool,
+        events: list[TrackEvent],
+    ) -> list[PoseHypothesis | None]:
+        """Assign this frame's solutions to the branches: branch 0 is the one whose tilt continues the
+        tilt tracker's prediction (see :class:`_TiltTracker`); after a long gap, the one nearer branch 0's
+        last tilt (the tracker restarts at rest)."""
         assert self.branches is not None and self.tilts is not None
         hypotheses = measurement.hypotheses
-        self.tilts.predict(dt)
         first = hypotheses[0]
-        is_branch0, clear = self.tilts.choose(tilt_of(first.pose), self._tilt_sigma(first.pose, camera))
+        sigma = self._tilt_sigma(first.pose, camera)
+        if restart:  # branch 0's last measured orientation, seen from where the target is now
+            assert self.branches[0] is not None  # (a track starts with its lower-error solution on branch 0)
+            self.tilts.reset(tilt_of(Pose.from_matrix(self.branches[0].last, first.pose.tvec)), sigma)
+        else:
+            self.tilts.predict(gap_s)
+        second = tilt_of(hypotheses[1].pose) if len(hypotheses) > 1 else None
+        is_branch0, clear = self.tilts.choose(tilt_of(first.pose), second, sigma, 0.0 if restart else gap_s)
         assigned: list[PoseHypothesis | None] = [None, None]
         if len(hypotheses) == 1:
             assigned[0 if is_branch0 else 1] = first
         else:
             assigned = [hypotheses[0], hypotheses[1]] if is_branch0 else [hypotheses[1], hypotheses[0]]
-            missing = [i for i, b in enumerate(self.branches) if b is None]
-            for index in missing:  # a second solution shows up for the first time: it starts its branch
-                self.branches[index] = self._new_branch(assigned[index].pose, camera)
-        # Blind for long while the solutions are far apart: which is which may have been lost. (While they
-        # are within flip_angle_deg of each other either one is close enough, so blindness costs nothing.)
+        self.doubtful = len(hypotheses) == 2 and not restart and self._motion_disagrees(assigned, gap_s)
+        for index, hypothesis in enumerate(assigned):  # a solution shows up for the first time: its branch starts
+            if self.branches[index] is None and hypothesis is not None:
+                self.branches[index] = self._new_branch(hypothesis.pose, camera)
+        # Unclear for long while the solutions are far apart: which is which may have been lost. (While they
+        # are within flip_angle_deg of each other either one is close enough, so unclarity costs nothing.)
         apart = (
             len(hypotheses) == 2
             and angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
         )
-        if not clear and apart and self.tilts.blind > self.config.crossing_blind_frames and self.committed is not None:
-            self._pending_events.append(
+        if apart and self.tilts.blind_s > self.config.crossing_blind_s and self.committed is not None:
+            events.append(
                 TrackEvent(
                     "uncommit",
-                    f"the two solutions stayed indistinguishable for {self.tilts.blind} frames: "
+                    f"the two solutions stayed indistinguishable for {self.tilts.blind_s:.2f} s: "
                     "which is which is undecided again",
                 )
             )
             self.committed = None
             self.evidence.clear()
+            self.against = 0
         return assigned
 
-    def _add_evidence(self, assigned: list[PoseHypothesis | None]) -> None:
+    @staticmethod
+    def _raw_pick(assigned: list[PoseHypothesis | None]) -> int | None:
+        """The branch of this frame's lower-error solution (None with fewer than two)."""
+        if assigned[0] is None or assigned[1] is None:
+            return None
+        return 0 if assigned[0].reproj_px <= assigned[1].reproj_px else 1
+
+    def _motion_disagrees(self, assigned: list[PoseHypothesis | None], gap_s: float) -> bool:
+        """A second opinion on the assignment: each branch's smoother, turned on at its angular velocity,
+        should be nearer its own solution than the other's. Where the tilt's continuity and the
+        rotation's disagree (fast motion through a crossing), which is which is not known this frame."""
+        assert self.branches is not None
+        if any(b is None for b in self.branches) or any(h is None for h in assigned):
+            return False
+        predicted = [b.smoother.rotation @ so3_exp(b.smoother.omega * gap_s) for b in self.branches]  # type: ignore[union-attr]
+        rotations = [h.pose.rotation for h in assigned]  # type: ignore[union-attr]
+        straight = angle_between_deg(predicted[0], rotations[0]) + angle_between_deg(predicted[1], rotations[1])
+        swapped = angle_between_deg(predicted[0], rotations[1]) + angle_between_deg(predicted[1], rotations[0])
+        return swapped + self.config.flip_angle_deg < straight
+
+    def _add_evidence(self, assigned: list[PoseHypothesis | None], timestamp_ns: int) -> None:
         cfg = self.config
         if assigned[0] is None or assigned[1] is None:
-            self.evidence.append(cfg.single_solution_evidence_px * (1 if assigned[0] is not None else -1))
-            return
-        difference = assigned[1].reproj_px - assigned[0].reproj_px
-        if cfg.motion_weight_px_per_deg > 0 and self.branches is not None and None not in self.branches:
-            innovation = [
-                float(np.degrees(np.linalg.norm(b.innovation(h.pose.rotation))))
-                for b, h in zip(self.branches, assigned)
-            ]  # type: ignore[union-attr]
-            difference += cfg.motion_weight_px_per_deg * (innovation[1] - innovation[0])
-        self.evidence.append(float(np.clip(difference, -cfg.evidence_cap_px, cfg.evidence_cap_px)))
+            value = cfg.single_solution_evidence_px * (1 if assigned[0] is not None else -1)
+        else:
+            difference = assigned[1].reproj_px - assigned[0].reproj_px
+            value = float(np.clip(difference, -cfg.evidence_cap_px, cfg.evidence_cap_px))
+        self.evidence.append((timestamp_ns, value))
+        oldest = timestamp_ns - int(cfg.evidence_window_s * 1e9)
+        while self.evidence and self.evidence[0][0] < oldest:
+            self.evidence.popleft()
 
-    def _update_noise(self, measurement: MarkerPose) -> None:
+    def _update_noise(self, measurement: MarkerPose | BoardPose) -> None:
+        """The corner noise: a slow estimate from the residuals, and this frame's own (a blurred frame's
+        residuals are larger): its measurement is trusted by the larger of the two."""
         estimate = measurement.best.reproj_px * _RESIDUAL_TO_SIGMA
         self.sigma_px = max(self.config.corner_noise_px, 0.9 * self.sigma_px + 0.1 * estimate)
+        self._frame_sigma = max(self.sigma_px, estimate)
 
     def _update_branches(
-        self, assigned: list[PoseHypothesis | None], camera: CameraModel, events: list[TrackEvent]
+        self, assigned: list[PoseHypothesis | None], camera: CameraModel, gap_s: float, restart: bool
     ) -> None:
+        """Each branch's smoother takes its measurement. A measurement is never rejected: a smoother
+        that finds it implausibly far (``reset_angle_deg``), or that has not seen its branch for longer
+        than ``restart_gap_s``, restarts from it."""
         cfg = self.config
         assert self.branches is not None
-        for index, (branch, hypothesis) in enumerate(zip(self.branches, assigned)):
+        limit = math.radians(cfg.max_angular_rate_deg_s)
+        for branch, hypothesis in zip(self.branches, assigned):
             if branch is None or hypothesis is None:
-                continue  # coasts on its prediction
+                continue
             pose = hypothesis.pose
-            cov_rot, cov_t = self._covariance(pose, camera)
-            jump = float(np.degrees(np.linalg.norm(branch.innovation(pose.rotation))))
-            if index == self.output_branch and jump > cfg.flip_angle_deg and not self.slewing:
-                assert self.translation_filter is not None
-                moved = float(np.linalg.norm(pose.tvec - self.translation_filter.translation))
-                if moved < cfg.flip_translation_m + 3.0 * math.sqrt(float(np.max(np.linalg.eigvalsh(cov_t)))):
-                    self.pending_flip += 1
-                    if self.pending_flip <= cfg.flip_persist_frames:
-                        events.append(
-                            TrackEvent(
-                                "rejected_flip",
-                                f"orientation jump of {jump:.1f} deg with "
-                                f"{100 * moved:.2f} cm of motion: a flip, not motion",
-                            )
-                        )
-                        self.doubtful = True  # this frame's output is a prediction we cannot vouch for
-                        continue
-                    events.append(
-                        TrackEvent(
-                            "accepted_jump",
-                            f"orientation jump of {jump:.1f} deg persisted "
-                            f"{self.pending_flip} frames: accepted as motion",
-                        )
-                    )
-                    branch.reset(pose.rotation, cov_rot)
-                    self.slewing = True
-            if index == self.output_branch:
-                self.pending_flip = 0
-            branch.update(pose.rotation, cov_rot)
+            cov_rot, _ = self._covariance(pose, camera)
+            smoother = branch.smoother
+            if not restart:
+                smoother.predict(gap_s)
+            jump = float(np.degrees(np.linalg.norm(smoother.innovation(pose.rotation))))
+            if restart or jump > cfg.reset_angle_deg:
+                smoother.reset(pose.rotation, cov_rot)
+            else:
+                smoother.update(pose.rotation, cov_rot)
+                omega = smoother.cv.xs[:, 3:]
+                speed = np.linalg.norm(omega, axis=1)
+                if np.any(speed > limit):  # bounded angular velocity, per motion model
+                    smoother.cv.xs[:, 3:] = omega * np.minimum(1.0, limit / np.maximum(speed, 1e-12))[:, None]
+                    smoother.cv._combine()
+            branch.last = pose.rotation
 
-    def _update_translation(self, measurement: MarkerPose, camera: CameraModel) -> None:
+    def _update_translation(
+        self, measurement: MarkerPose | BoardPose, camera: CameraModel, gap_s: float, restart: bool
+    ) -> None:
         assert self.translation_filter is not None
         pose = measurement.best.pose
         _, cov_t = self._covariance(pose, camera)
+        if restart:
+            self.translation_filter = TranslationFilter(
+                pose.tvec, cov_t, self.config.still_translation_m_sqrt_s, self.config.linear_accel_moving_m_s2
+            )
+            return
+        self.translation_filter.predict(gap_s)
         self.translation_filter.update(pose.tvec, cov_t)
 
-    def _coast(self, dt: float, events: list[TrackEvent]) -> TrackUpdate | None:
-        if self.branches is None:
-            return None
-        self.missed += 1
-        if self.missed > self.config.max_missed_frames:
-            self.branches = None
-            events.append(TrackEvent("reset", f"lost for more than {self.config.max_missed_frames} frames: reset"))
-            return None
-        assert self.translation_filter is not None
-        for branch in self.branches:
-            if branch is not None:
-                branch.predict(dt)
-        if self.tilts is not None:
-            self.tilts.predict(dt)
-        self.translation_filter.predict(dt)
-        return self._result("predicted", (None, None), events)
-
-    def _output(self, filtered: np.ndarray, moved_m: float) -> np.ndarray:
-        """The rotation to show: the filter's, but while the position stays put (``moved_m`` below
-        ``flip_translation_m``) turning at most max_output_step_deg per frame: a change of branch, or a
-        filter that jumped, is slewed over several frames instead of snapping."""
-        previous = self.output_rotation
-        if previous is None:
-            self.output_rotation = filtered
-            return filtered
-        step = so3_log(previous.T @ filtered)
-        angle = float(np.degrees(np.linalg.norm(step)))
-        limit = self.config.max_output_step_deg
-        if angle <= limit or moved_m >= self.config.flip_translation_m:
-            self.slewing = False
-            self.output_rotation = filtered
-        else:
-            self.slewing = True
-            self.output_rotation = previous @ so3_exp(step * (limit / angle))
-        return self.output_rotation
-
-    def _too_uncertain(self, branch: RotationFilter) -> bool:
-        """3 sigma of the filtered orientation beyond flip_angle_deg."""
-        sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(branch.cv.P[:3, :3]))), 0.0))
-        return math.degrees(3.0 * sigma) > self.config.flip_angle_deg
-
-    def _result(self, state: str, hypotheses: tuple[Pose | None, Pose | None], events: list[TrackEvent]) -> TrackUpdate:
+    def _measured_output(
+        self, assigned: list[PoseHypothesis | None], camera: CameraModel
+    ) -> tuple[Pose, np.ndarray | None]:
+        """The output pose of a measured frame: the output branch's smoothed pose, held within
+        ``output_sigmas`` standard deviations (the measurement's own covariance) of this frame's
+        measurement on that branch, so smoothing can lower jitter but never lag behind real motion
+        by more than the noise. Returns the pose and the measurement's rotation covariance."""
         assert self.branches is not None and self.translation_filter is not None
         branch = self.branches[self.output_branch]
         assert branch is not None
-        translation = self.translation_filter.translation
-        moved = 0.0 if self.output_translation is None else float(np.linalg.norm(translation - self.output_translation))
-        self.output_translation = translation
-        rotation = self._output(branch.rotation, moved)
-        pose = Pose.from_matrix(rotation, translation)
-        if state == "tracked" and (self.slewing or self.doubtful or self._too_uncertain(branch)):
-            # turning toward the committed branch, a rejected flip, or an orientation so noisy that even the
-            # right branch may be off by a flip's worth: not vouched for
-            state = "ambiguous"
+        rotation, translation = branch.smoother.rotation, self.translation_filter.translation
+        hypothesis = assigned[self.output_branch]
+        covariance = None
+        if hypothesis is not None:
+            measured = hypothesis.pose
+            cov_rot, cov_t = self._covariance(measured, camera)
+            # a still target is averaged over many frames; a moving one follows its measurements closely
+            still = self._still(measured, cov_rot, cov_t)
+            k = self.config.output_sigmas if still else self.config.output_sigmas_moving
+            error = so3_log(measured.rotation.T @ rotation)  # body-frame error, as the covariance's
+            rotation = measured.rotation @ so3_exp(_within(error, cov_rot, k))
+            translation = measured.tvec + _within(translation - measured.tvec, cov_t, k)
+            covariance = cov_rot
+        omega = branch.smoother.omega
+        velocity = self.translation_filter.cv.x[3:].copy()
+        self._velocity = (omega, velocity)
+        return Pose.from_matrix(rotation, translation), covariance
+
+    def _still(self, measured: Pose, cov_rot: np.ndarray, cov_t: np.ndarray) -> bool:
+        """Has the output branch's measurement stayed put, within its noise, for ``still_s``? (The
+        difference of two measurements has twice a measurement's covariance; 3 sigma.)"""
+        assert self.measured_ns is not None
+        history = self._history
+        if history and history[0][0] != self.output_branch:
+            history.clear()
+        if history:  # how fast it moved since the last measurement (what a prediction may miss), rad/s
+            _, last_ns, last = history[-1]
+            dt = max((self.measured_ns - last_ns) * 1e-9, 1e-3)
+            turn = float(np.linalg.norm(so3_log(last.rotation.T @ measured.rotation)))
+            shift = float(np.linalg.norm(measured.tvec - last.tvec)) / max(float(np.linalg.norm(measured.tvec)), 1e-6)
+            self._rate = (turn + shift) / dt
+        history.append((self.output_branch, self.measured_ns, measured))
+        horizon = self.measured_ns - int(self.config.still_s * 1e9)
+        while len(history) > 1 and history[1][1] <= horizon:
+            history.popleft()
+        _, then_ns, then = history[0]
+        if then_ns > horizon:
+            return False  # not seen long enough to tell
+        turned = so3_log(then.rotation.T @ measured.rotation)
+        moved = measured.tvec - then.tvec
+        return bool(
+            turned @ np.linalg.solve(2.0 * cov_rot, turned) < 9.0 and moved @ np.linalg.solve(2.0 * cov_t, moved) < 9.0
+        )
+
+    def _coast(self, timestamp_ns: int, events: list[TrackEvent]) -> TrackUpdate | None:
+        """A frame without a measurement: a short prediction (velocity decaying with
+        ``predict_damping_s``) for up to ``predict_s``; then nothing is published, but the track keeps
+        its branches and evidence until ``memory_s``, so a target that returns is not a new track."""
+        if self.branches is None or self.measured_ns is None:
+            return None
+        cfg = self.config
+        gap_s = (timestamp_ns - self.measured_ns) * 1e-9
+        if gap_s > cfg.memory_s:
+            self.branches = None
+            events.append(TrackEvent("reset", f"lost for more than {cfg.memory_s:g} s: reset"))
+            return None
+        if gap_s > cfg.predict_s or self._output is None:
+            return None
+        tau = cfg.predict_damping_s
+        reach = tau * (1.0 - math.exp(-gap_s / tau))  # integral of exp(-t / tau) over the gap
+        omega, velocity = self._velocity
+        if math.degrees(self._prediction_doubt(omega, gap_s, reach)) > cfg.predict_max_deg:
+            return None  # not trustworthy: publish nothing rather than a guess
+        rotation = self._output.rotation @ so3_exp(omega * reach)
+        pose = Pose.from_matrix(rotation, self._output.tvec + velocity * reach)
+        return self._result("predicted", pose, (None, None), events)
+
+    def _prediction_doubt(self, omega: np.ndarray, gap_s: float, reach_s: float) -> float:
+        """How much more a prediction over ``gap_s`` may be off than the last measured output (radians):
+        the turn the damping leaves out if the motion went on or, if larger, the turn plus the shift (as an
+        angle seen from the camera) at the rate last measured."""
+        return max(float(np.linalg.norm(omega)) * (gap_s - reach_s), self._rate * gap_s)
+
+    def _too_uncertain(self, covariance: np.ndarray | None) -> bool:
+        """3 sigma of the measured orientation beyond flip_angle_deg: even the right branch may be off
+        by a flip's worth."""
+        if covariance is None:
+            return True
+        sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(covariance))), 0.0))
+        return math.degrees(3.0 * sigma) > self.config.flip_angle_deg
+
+    def _result(
+        self, state: str, pose: Pose, hypotheses: tuple[Pose | None, Pose | None], events: list[TrackEvent]
+    ) -> TrackUpdate:
         return TrackUpdate(
             state,
             pose,
@@ -762,3 +924,14 @@ class TargetTrack:
             hypotheses,
             tuple(events),
         )
+
+
+def _within(error: np.ndarray, covariance: np.ndarray, sigmas: float) -> np.ndarray:
+    """``error`` shrunk (along itself) to at most ``sigmas`` Mahalanobis distance under ``covariance``."""
+    try:
+        distance = math.sqrt(max(float(error @ np.linalg.solve(covariance, error)), 0.0))
+    except np.linalg.LinAlgError:
+        return np.zeros_like(error)
+    if distance <= sigmas or distance == 0.0:
+        return error
+    return error * (sigmas / distance)

@@ -8,6 +8,7 @@ lower-error IPPE solution, state ``tracked``.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -83,6 +84,7 @@ class FrameResult:
     failures: tuple[PoseFailure, ...] = ()
     latency_ms: dict[str, float] = field(default_factory=dict)
     camera: CameraModel | None = None
+    repeated: bool = False  # the same pixels as the frame before: the previous answer, not a new measurement
 
 
 class Tracker:
@@ -105,6 +107,9 @@ class Tracker:
         # ROI tracking state: the last two frames' corners per marker id
         self._last_corners: dict[int, np.ndarray] = {}
         self._before_corners: dict[int, np.ndarray] = {}
+        self._fingerprint: np.ndarray | None = None  # every 4th pixel of the last frame (repeats)
+        self._previous: FrameResult | None = None
+        self._seen: dict[int, tuple[np.ndarray, int]] = {}  # marker id -> (last corners, when)
         self._frames_since_full = 0
         self._last_size: tuple[int, int] | None = None
 
@@ -128,27 +133,33 @@ class Tracker:
             return next(s.outline for s in self.board_solvers if s.name == ident)
         return marker_corners_in_marker(self.config.marker_length(int(ident)))[None]
 
-    def _detect(self, image: np.ndarray, camera: CameraModel) -> MarkerDetections:
+    def _detect(self, image: np.ndarray, camera: CameraModel, timestamp_ns: int) -> MarkerDetections:
         """Full-frame detection, or ROI tracking between full-frame searches (``[detector] roi``).
 
-        The whole frame is searched on the first frame, every ``roi_full_every`` frames, after a
-        frame size change, and again in the same frame whenever a region search misses a marker that
-        the previous frame had (so a lost marker is looked for at once, and a new one within
-        ``roi_full_every`` frames).
+        Regions are searched only while every marker seen in the last ``[filter] memory_s`` was seen in
+        the previous frame too. The whole frame is searched on the first frame, every ``roi_full_every``
+        frames, after a frame size change, in every frame while a recently seen marker is missing (a
+        marker lost to one blurred frame is looked for everywhere until it is back or forgotten), and
+        again in the same frame whenever a region search misses a marker the previous frame had. So ROI
+        tracking never finds fewer of the known markers than full-frame detection; a marker never seen
+        before is found within ``roi_full_every`` frames.
         """
         settings = self.config.detector
         size = (image.shape[1], image.shape[0])
+        memory_ns = int(self.config.filter.memory_s * 1e9)
+        self._seen = {i: seen for i, seen in self._seen.items() if timestamp_ns - seen[1] <= memory_ns}
+        missing = any(i not in self._last_corners for i in self._seen)
         full = (
             not settings.roi
             or not self._last_corners
+            or missing
             or self._frames_since_full + 1 >= settings.roi_full_every
             or size != self._last_size
         )
         detections = None
         if not full:
-            regions = plan_regions(
-                self._last_corners, self._before_corners, size, settings.roi_margin, cells=self.detector.cells
-            )
+            moving = {i: c for i, c in self._before_corners.items() if i in self._last_corners}
+            regions = plan_regions(self._last_corners, moving, size, settings.roi_margin, cells=self.detector.cells)
             detections = self.detector.detect_regions(image, regions, camera)
             if not set(self._last_corners) <= set(detections.ids.tolist()):
                 detections = None  # a marker was missed: search everywhere
@@ -160,12 +171,36 @@ class Tracker:
         self._last_size = size
         self._before_corners = self._last_corners
         self._last_corners = {int(i): c for i, c in zip(detections.ids, detections.corners)}
+        for marker_id, corners in self._last_corners.items():
+            self._seen[marker_id] = (corners, timestamp_ns)
         return detections
 
     def process(self, frame: Frame) -> FrameResult:
+        fingerprint = np.ascontiguousarray(frame.image[::4, ::4])
+        previous, self._fingerprint = self._fingerprint, fingerprint
+        if self._previous is not None and previous is not None and np.array_equal(previous, fingerprint):
+            # a repeated frame (a 30 fps container carrying 12 fps content): the same pixels are no new
+            # evidence; the last answer stands, with this frame's index and time
+            return self._repeat(frame)
+        self._previous = self._process(frame)
+        return self._previous
+
+    def _repeat(self, frame: Frame) -> FrameResult:
+        assert self._previous is not None
+        targets = {name: dataclasses.replace(t, events=()) for name, t in self._previous.targets.items()}
+        return dataclasses.replace(
+            self._previous,
+            index=frame.index,
+            timestamp_ns=frame.timestamp_ns,
+            targets=targets,
+            latency_ms={"detect_ms": 0.0, "pose_ms": 0.0, "filter_ms": 0.0},
+            repeated=True,
+        )
+
+    def _process(self, frame: Frame) -> FrameResult:
         camera = self.camera_for(frame.size)
         t0 = time.perf_counter()
-        detections = self._detect(frame.image, camera)
+        detections = self._detect(frame.image, camera, frame.timestamp_ns)
         if self.config.pose.recover_markers:
             for solver in self.board_solvers:
                 detections = self.detector.recover(
@@ -214,8 +249,9 @@ class Tracker:
             update = track.update(solved, timestamp_ns, camera)
             for event in update.events if update is not None else ():
                 log.info("%s: %s", name, event.message)
-            if update is None:  # lost for too long: the track is reset
-                del self.tracks[name]
+            if update is None:  # nothing to publish: a gap too long to predict through, or lost for good
+                if not track.alive:
+                    del self.tracks[name]
                 continue
             targets[name] = self._result(
                 name,
@@ -274,6 +310,7 @@ class Tracker:
     def reset(self) -> None:
         """Forget all tracks (e.g. after a cut in the video)."""
         self.tracks.clear()
+        self._previous = self._fingerprint = None
 
 
 def _target_order(name: str) -> tuple[str, int, str]:

@@ -179,16 +179,18 @@ def test_a_newly_appearing_marker_is_found_within_the_full_frame_period(full_eve
     trajectory = Trajectory(kind="static", near_m=0.6, look_at=(0.05, 0.0, 0.0))
     one = PlacedMarker(0, 0.05, Pose(np.zeros(3), np.array([-0.06, 0.0, 0.0])))
     two = PlacedMarker(1, 0.05, Pose(np.zeros(3), np.array([0.16, 0.03, 0.0])))
+    switch = 7
     scenes = [
-        SyntheticScene(camera=camera, markers=markers, trajectory=trajectory, frames=1, noise_sigma=1.0)
+        SyntheticScene(
+            camera=camera, markers=markers, trajectory=trajectory, frames=switch + 3 * full_every, noise_sigma=1.0
+        )
         for markers in ((one,), (one, two))
     ]
-    before, after = (SyntheticSource(scene).frame(0).image for scene in scenes)
+    before, after = (SyntheticSource(scene) for scene in scenes)  # (new sensor noise every frame)
     tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=full_every), camera)
-    switch = 7
     found_at = None
     for index in range(switch + 3 * full_every):
-        image = before if index < switch else after
+        image = (before if index < switch else after).frame(index).image
         result = tracker.process(Frame(image, index, index * 33_333_333))
         assert "marker:0" in result.targets
         if index < switch:
