@@ -619,26 +619,32 @@ def _sheet_disagreement(run: ScenarioRun) -> dict[str, Any] | None:
 def acceptance(result: dict[str, Any]) -> dict[str, Any]:
     """The issue-16 acceptance on one evaluated scenario: ``{"pass": bool, "failed": [reasons]}``.
 
-    Checked on every target (the worst one decides); a metric without data (no predicted rows) passes."""
-    failed = []
+    Checked on every target; one reason per failed criterion, with the worst value, its target and
+    how many targets fail it. A metric without data (no predicted rows) passes."""
     targets = result.get("targets") or {"": {"raw": result["raw"], "tracker": result["tracker"]}}
-    for name, m in targets.items():
-        raw, trk = m["raw"], m["tracker"]
-        label = f"{name}: " if len(targets) > 1 else ""
-        excess = trk.get("flipped_pct", 0.0) - raw.get("flipped_pct", 0.0)
-        if excess > ACCEPTANCE["wrong_excess_points"] + 1e-9:
-            failed.append(f"{label}wrong {trk.get('flipped_pct', 0):.1f}% > raw {raw.get('flipped_pct', 0):.1f}% + 0.2")
-        if trk.get("wrong_tracked", 0) > ACCEPTANCE["wrong_tracked"]:
-            failed.append(f"{label}{trk['wrong_tracked']} wrong tracked")
-        if trk.get("twitches", 0) > ACCEPTANCE["twitches"]:
-            failed.append(f"{label}{trk['twitches']} twitches")
-        if trk.get("longest_stretch", 0) > ACCEPTANCE["longest_stretch"]:
-            failed.append(f"{label}stretch {trk['longest_stretch']}")
-        median, p95 = trk.get("predicted_median_deg"), trk.get("predicted_p95_deg")
-        if median is not None and median > ACCEPTANCE["predicted_median_deg"]:
-            failed.append(f"{label}predicted median {median:.1f} deg")
-        if p95 is not None and p95 > ACCEPTANCE["predicted_p95_deg"]:
-            failed.append(f"{label}predicted p95 {p95:.1f} deg")
+    limits = ACCEPTANCE
+    checks: list[tuple[str, Callable[[dict, dict], float | None], float, str]] = [
+        ("wrong", lambda r, t: t.get("flipped_pct", 0.0) - r.get("flipped_pct", 0.0),
+         limits["wrong_excess_points"] + 1e-9, "wrong +{:.1f} points over raw"),
+        ("wrong tracked", lambda r, t: t.get("wrong_tracked", 0), limits["wrong_tracked"], "{:.0f} wrong tracked"),
+        ("twitches", lambda r, t: t.get("twitches", 0), limits["twitches"], "{:.0f} twitches"),
+        ("stretch", lambda r, t: t.get("longest_stretch", 0), limits["longest_stretch"], "stretch {:.0f}"),
+        ("predicted median", lambda r, t: t.get("predicted_median_deg"), limits["predicted_median_deg"],
+         "predicted median {:.1f} deg"),
+        ("predicted p95", lambda r, t: t.get("predicted_p95_deg"), limits["predicted_p95_deg"],
+         "predicted p95 {:.1f} deg"),
+    ]  # fmt: skip
+    failed = []
+    for _, value_of, limit, text in checks:
+        bad = []
+        for name, m in targets.items():
+            value = value_of(m["raw"], m["tracker"])
+            if value is not None and value > limit:
+                bad.append((value, name))
+        if bad:
+            value, name = max(bad)
+            where = f" ({name}" + (f", {len(bad)} of {len(targets)} targets)" if len(targets) > 1 else ")") if name else ""
+            failed.append(text.format(value) + where)
     return {"pass": not failed, "failed": failed}
 
 
@@ -829,9 +835,7 @@ def acceptance_table(results: list[dict[str, Any]]) -> str:
             f"{_fmt(sheet['raw']['disagree_pct'], 1)} / {_fmt(sheet['tracker']['disagree_pct'], 1)}" if sheet else "-"
         )
         verdict = r.get("acceptance") or acceptance(r)
-        pass_cell = "pass" if verdict["pass"] else "FAIL: " + "; ".join(verdict["failed"][:3]) + (
-            " ..." if len(verdict["failed"]) > 3 else ""
-        )
+        pass_cell = "pass" if verdict["pass"] else "FAIL: " + "; ".join(verdict["failed"])
         lines.append(
             f"| {r['scenario']['name']} | {len(targets) or 1} "
             f"| {_fmt(raw.get('flipped_pct'), 1)} / {_fmt(trk.get('flipped_pct'), 1)} | {worst_cell} "
