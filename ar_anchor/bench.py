@@ -125,7 +125,8 @@ class Scenario:
     frames), ``exposure_s``, ``rolling_shutter_s``, ``compression`` (``jpeg_quality``, ``h264_kbps``),
     ``lighting``, ``occluders``; the hand-held path: ``distance_m`` to ``far_m``, sway up to
     ``tilt_deg`` (azimuth), ``tremor_deg``, quick turns to ``turn_peak_deg_s`` (0: none),
-    ``turn_every_s``, aim wander ``aim_m``. ``min_perimeter_rate`` overrides the detector's
+    ``turn_every_s``, aim wander ``aim_m`` around ``aim_offset_m`` (an offset pushes the targets towards
+    the image border). ``min_perimeter_rate`` overrides the detector's
     (far markers).
     """
 
@@ -162,6 +163,7 @@ class Scenario:
     turn_deg: float = 12.0
     turn_every_s: float = 2.5
     aim_m: float = 0.02
+    aim_offset_m: tuple[float, float] = (0.0, 0.0)  # where the hand-held camera aims, off the targets' centre
     min_perimeter_rate: float | None = None
 
     @property
@@ -228,6 +230,7 @@ class Scenario:
                 turn_deg=self.turn_deg,
                 turn_every_s=self.turn_every_s,
                 aim_m=self.aim_m,
+                look_at=(*self.aim_offset_m, 0.0),
                 seed=self.seed,
             )
         raise ValueError(f"unknown motion {self.motion!r}")
@@ -741,7 +744,7 @@ def handheld_scenarios(quick: bool = False) -> list[Scenario]:
         clip("hh vga distortion k1-0.25 sheet6", k1=-0.25, k2=0.08, hfov_deg=70.0, far_m=0.8, tilt_deg=25, seed=9,
              compression="jpeg", aim_m=0.06),
         clip("hh vga lighting step border lone 6cm", sheet=0, marker_m=0.06, distance_m=0.4, far_m=0.9, tilt_deg=30,
-             aim_m=0.12, lighting=Lighting(gain_drift=0.12, offset_drift=6.0, steps=((0.4 * seconds, 0.6),)),
+             aim_m=0.1, aim_offset_m=(0.3, 0.04), lighting=Lighting(gain_drift=0.12, offset_drift=6.0, steps=((0.4 * seconds, 0.6),)),
              compression="h264", seed=10),
     ]  # fmt: skip
     return [grid[i] for i in (0, 4, 6)] if quick else grid
