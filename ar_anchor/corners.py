@@ -13,9 +13,17 @@ corners' RMS error falls from 0.36-0.57 px (OpenCV's sub-pixel refinement) to 0.
 With a distortion model, edge points are undistorted before the lines are fitted and the corners
 distorted back, so curved sides on a wide lens are handled exactly.
 
-The refinement keeps a marker's detected corners whenever it cannot trust its own result: too few
-edge points on a side, nearly parallel sides, or a corner that would move further than half a
-marker cell.
+Each fitted corner is accepted or rejected by the quality of its own two sides, never by how far it
+moves from the detected corner: where markers touch at their corners (chessboard-like sheets) the
+detector's contour merges them and its corners land several pixels off, exactly where the edge fit
+is most needed. A side is trusted when its edge points are many, spread over much of its length and
+mostly on one line (the line is refitted without the points far from it, so a neighbour's edge near a
+corner or an occluding blob does not pull it), with a small residual (against the marker's cleanest
+side: the image's noise and blur), when its direction agrees with the detected side's and its edge is
+about as strong as the marker's other sides' (dark inside, light outside: each profile's polarity is
+checked too). A corner is refined when both its sides are trusted, they are not nearly parallel, and
+it stays within a quarter of the marker's side of the detected corner (a sanity bound only); any other
+corner keeps its detected position.
 """
 
 from __future__ import annotations
@@ -23,16 +31,37 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["refine_corners_by_edges"]
+__all__ = ["FITTED", "NOT_TRIED", "REJECTED", "fit_corners_by_edges", "refine_corners_by_edges"]
 
 _STEP_ALONG = 0.5  # px between edge samples along a side (larger on big markers, see _MAX_PER_SIDE)
 _MAX_PER_SIDE = 40  # edge samples per side at most: more only costs time
 _ACROSS = np.linspace(-1.0, 1.0, 17)  # profile samples across a side, in units of the half-width
+_ACROSS_32 = _ACROSS.astype(np.float32)
 _HALF_WIDTH_CELLS = 0.7  # profile half-width, in marker cells (the border is one cell wide) ...
 _HALF_WIDTH_PX = (1.5, 4.0)  # ... clipped to this range of pixels
+_SEARCH_CELLS, _SEARCH_PX = 1.0, (1.5, 6.0)  # the same for the first pass, which must find an edge the
+# detector placed a few pixels off (where markers touch at their corners)
 _ITERATIONS = 2  # re-centre each profile on its last edge estimate
 _MIN_SIDE_PX = 6.0
 _MIN_POINTS = 4  # edge points a side needs for its line
+# what a side's line must satisfy to be trusted (see the module's docstring)
+_TRIM_ITERATIONS = 1  # refits without the points farther than _TRIM_SIGMAS robust sigmas from the line
+_TRIM_SIGMAS = 3.0
+_MIN_POINT_FRACTION = 0.3  # inliers, of the profiles the side has
+_MIN_INLIER_FRACTION = 0.6  # inliers, of the side's edge points
+_MIN_COVERAGE = 0.4  # from the first inlier to the last: at least this fraction of the side's samples
+_MAX_RMS_PX = 0.25  # inliers' RMS distance from the line: at most this, or this fraction of the
+_MAX_RMS_HALF = 0.08  # profile's half-width, or this multiple of the marker's cleanest side's (the image's
+_MAX_RMS_NOISE = 3.0  # noise and blur, as this marker shows them)
+_MAX_TURN_DEG = 15.0  # the line's direction against the detected side's
+_MIN_STRENGTH = 0.25  # the side's typical edge gradient, against the marker's strongest side
+_MAX_OPPOSITE = 0.5  # a profile's strongest light-to-dark gradient, against its dark-to-light peak
+# and what a corner must satisfy
+_MIN_SIN = 0.2  # its two lines at least about 12 deg from parallel
+_MAX_MOVE_SIDE = 0.25  # at most this fraction of the marker's side from the detected corner (or _MIN_MOVE_PX)
+_MIN_MOVE_PX = 1.5
+
+FITTED, REJECTED, NOT_TRIED = 1, 0, -1  # a corner's status (fit_corners_by_edges)
 
 
 def refine_corners_by_edges(
@@ -55,41 +84,82 @@ def refine_corners_by_edges(
 
     Returns
     -------
-    (N, K, 2) float64 corners; a marker whose refinement fails keeps its input corners.
+    (N, K, 2) float64 corners; a corner whose fit cannot be trusted keeps its input position.
 
     Every step runs on all markers and sides at once (arrays of shape (markers, sides, samples)):
     this runs on every marker of every frame.
     """
+    return fit_corners_by_edges(grey, corners, cells, camera_matrix, dist)[0]
+
+
+def fit_corners_by_edges(
+    grey: np.ndarray,
+    corners: np.ndarray,
+    cells: int,
+    camera_matrix: np.ndarray | None = None,
+    dist: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`refine_corners_by_edges`, and each corner's status: (N, K) int8, ``FITTED`` (moved to its
+    sides' intersection), ``REJECTED`` (a fit was tried and not trusted: the input corner is kept) or
+    ``NOT_TRIED`` (a marker too small to sample, or with non-finite corners)."""
     corners = np.asarray(corners, dtype=np.float64)
     sides = corners.shape[-2] if corners.ndim == 3 and corners.shape[-2] >= 3 else 4
     corners = corners.reshape(-1, sides, 2)
     out = corners.copy()
+    status = np.full(corners.shape[:2], NOT_TRIED, np.int8)
     profiles = _Profiles.of(corners, cells)
     if profiles is None:
-        return out
-    points, keep = profiles.edge_points(grey)
+        return out, status
+    quad = corners[profiles.index]
+    points, keep, strength = profiles.edge_points(grey)
     if camera_matrix is not None and dist is not None and np.any(np.asarray(dist) != 0):
         k_matrix = np.asarray(camera_matrix, np.float64)
         dist = np.asarray(dist, np.float64).reshape(-1)
-        points = cv2.undistortPoints(points.reshape(-1, 1, 2), k_matrix, dist, P=k_matrix).reshape(points.shape)
+        # the detected corners too: the fitted sides' directions are checked against theirs
+        flat = np.concatenate([points.reshape(-1, 2), quad.reshape(-1, 2)])
+        flat = cv2.undistortPoints(flat.reshape(-1, 1, 2), k_matrix, dist, P=k_matrix).reshape(-1, 2)
+        points, plane_quad = flat[: points[..., 0].size].reshape(points.shape), flat[points[..., 0].size :]
+        plane_quad = plane_quad.reshape(quad.shape)
     else:
         k_matrix = dist = None
-    centre, direction = _fit_lines(points, keep)  # (M, K, 2) each; NaN where a side has too few points
+        plane_quad = quad
+    centre, direction, count, rms, extent = _fit_lines(points, keep)
+    # a side is trusted when its line rests on many edge points spread along it, close to it, runs along
+    # the detected side, and its edge is about as strong as the marker's other sides' (a side with no edge
+    # at all has only noise: weak and scattered)
+    after, before = (np.arange(sides) + 1) % sides, (np.arange(sides) - 1) % sides
+    detected = plane_quad[:, after] - plane_quad
+    turn = np.abs(np.einsum("mkd,mkd->mk", detected, direction)) / np.maximum(np.linalg.norm(detected, axis=2), 1e-12)
+    valid = profiles.valid.sum(axis=-1)
+    noise = np.min(np.where(count >= _MIN_POINTS, rms, np.inf), axis=1)
+    rms_limit = np.maximum(np.maximum(_MAX_RMS_PX, _MAX_RMS_HALF * profiles.half), _MAX_RMS_NOISE * noise)
+    trusted = (
+        (count >= np.maximum(_MIN_POINTS, _MIN_POINT_FRACTION * valid))
+        & (count >= _MIN_INLIER_FRACTION * keep.sum(axis=-1))
+        & (extent >= _MIN_COVERAGE * (valid - 1))
+        & (rms <= rms_limit[:, None])
+        & (turn >= np.cos(np.radians(_MAX_TURN_DEG)))
+    )
+    with np.errstate(invalid="ignore"):
+        strongest = np.max(np.where(trusted, strength, 0.0), axis=1)
+        trusted &= strength >= _MIN_STRENGTH * strongest[:, None]
     # corner k is where sides k - 1 and k meet
-    refined = _intersect(np.roll(centre, 1, axis=1), np.roll(direction, 1, axis=1), centre, direction)
-    good = np.all(np.isfinite(refined), axis=(1, 2))
+    centre_before, direction_before = centre[:, before], direction[:, before]
+    refined = _intersect(centre_before, direction_before, centre, direction)
+    sin = np.abs(direction_before[..., 0] * direction[..., 1] - direction_before[..., 1] * direction[..., 0])
+    good = trusted[:, before] & trusted & (sin >= _MIN_SIN) & np.all(np.isfinite(refined), axis=2)
     if k_matrix is not None and good.any():
-        flat = refined[good].reshape(-1, 1, 2)
-        rays = cv2.undistortPoints(flat, k_matrix, np.zeros(5)).reshape(-1, 2)
+        rays = cv2.undistortPoints(refined[good].reshape(-1, 1, 2), k_matrix, np.zeros(5)).reshape(-1, 2)
         rays3 = np.column_stack([rays, np.ones(len(rays))])
-        distorted = cv2.projectPoints(rays3, np.zeros(3), np.zeros(3), k_matrix, dist)[0]
-        refined[good] = distorted.reshape(-1, sides, 2)
-        good &= np.all(np.isfinite(refined), axis=(1, 2))
-    limit = np.maximum(1.5, 0.5 * profiles.cell)
-    moved = np.linalg.norm(refined - corners[profiles.index], axis=2).max(axis=1)
-    good &= moved <= limit
-    out[profiles.index[good]] = refined[good]
-    return out
+        refined[good] = cv2.projectPoints(rays3, np.zeros(3), np.zeros(3), k_matrix, dist)[0].reshape(-1, 2)
+        good &= np.all(np.isfinite(refined), axis=2)
+    # a sanity bound only (the detector's corner can be several pixels off where markers touch)
+    limit = np.maximum(_MIN_MOVE_PX, _MAX_MOVE_SIDE * profiles.cell * cells)
+    with np.errstate(invalid="ignore"):
+        good &= np.linalg.norm(refined - quad, axis=2) <= limit[:, None]
+    out[profiles.index] = np.where(good[..., None], refined, quad)
+    status[profiles.index] = np.where(good, FITTED, REJECTED)
+    return out, status
 
 
 class _Profiles:
@@ -129,45 +199,62 @@ class _Profiles:
         half = np.clip(_HALF_WIDTH_CELLS * cell, *_HALF_WIDTH_PX)
         return cls(index, base, normal, half, valid, cell)
 
-    def edge_points(self, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per profile, the centroid of the outward dark-to-light gradient, and whether to trust it."""
+    @property
+    def search(self) -> np.ndarray:
+        """The first pass's half-width (M,): wider than ``half``."""
+        return np.maximum(np.clip(_SEARCH_CELLS * self.cell, *_SEARCH_PX), self.half)
+
+    def edge_points(self, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per profile, the centroid of the outward dark-to-light gradient and whether to trust it; per
+        side, the typical (median) peak gradient of its trusted profiles (NaN where there is none)."""
         # only the pixels the profiles can reach are converted to float (a whole 1080p frame costs 0.4 ms):
-        # a profile's centre moves less than its half-width from the side, and reaches a half-width beyond
-        reach = 2.0 * float(self.half.max()) + 2.0
+        # a profile's centre moves less than the search half-width from the side, and reaches a half-width beyond
+        search = self.search
+        reach = float((search + self.half).max()) + 2.0
         valid_base = self.base[self.valid]
         lo = np.maximum(np.floor(valid_base.min(axis=0) - reach), 0).astype(int)
         hi = np.minimum(np.ceil(valid_base.max(axis=0) + reach) + 1, (grey.shape[1], grey.shape[0])).astype(int)
         lo = np.minimum(lo, np.maximum(hi - 1, 0))  # a marker wholly outside the image still gets a pixel
         image = np.asarray(grey[lo[1] : hi[1], lo[0] : hi[0]], dtype=np.float32)
-        origin = lo.astype(np.float64)
         shape = self.base.shape[:3]
-        normal = np.broadcast_to(self.normal[:, :, None, :], (*shape, 2))
-        half = np.broadcast_to(self.half[:, None, None], shape)
-        offsets = np.zeros(shape)
-        across = _ACROSS * half[..., None]  # (M, K, S, A) pixels from the profile's centre
-        for _ in range(_ITERATIONS):
-            centres = self.base - origin + offsets[..., None] * normal
-            samples = centres[..., None, :] + across[..., None] * normal[..., None, :]
+        centre = self.base - lo  # the profiles' centres on the crop before they move ...
+        offsets = np.zeros(shape)  # ... by this much along the outward normal
+        normal = self.normal.astype(np.float32)[:, :, None, None, :]  # (M, K, 1, 1, 2)
+        for iteration in range(_ITERATIONS):
+            half = search if iteration == 0 else self.half
+            across = (half[:, None] * _ACROSS).astype(np.float32)[:, None, None, :]  # (M, 1, 1, A) px
+            at = (centre + offsets[..., None] * self.normal[:, :, None, :]).astype(np.float32)[..., None, :]
+            # sample positions (M, K, S, A); float32 is ample for pixel coordinates (and what remap takes)
             profile = cv2.remap(
                 image,
-                samples[..., 0].reshape(-1, _ACROSS.size).astype(np.float32),
-                samples[..., 1].reshape(-1, _ACROSS.size).astype(np.float32),
+                (at[..., 0] + across * normal[..., 0]).reshape(-1, _ACROSS.size),
+                (at[..., 1] + across * normal[..., 1]).reshape(-1, _ACROSS.size),
                 cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_REPLICATE,
-            ).reshape(across.shape)
-            gradient = np.clip(np.gradient(profile, axis=-1), 0.0, None)  # dark inside to light outside only
-            peak = gradient.max(axis=-1)
+            ).reshape(*shape, _ACROSS.size)
+            signed = np.empty_like(profile)  # np.gradient's differences, without its overhead
+            np.subtract(profile[..., 2:], profile[..., :-2], out=signed[..., 1:-1])
+            signed[..., 1:-1] *= 0.5
+            signed[..., 0] = profile[..., 1] - profile[..., 0]
+            signed[..., -1] = profile[..., -1] - profile[..., -2]
+            weights = np.maximum(signed, 0.0)  # dark inside to light outside only
+            peak = weights.max(axis=-1)
             # noise adds small positive gradients everywhere, which would pull the centroid to the
             # window's centre: only the part of the profile above a fifth of its peak counts
-            weights = np.clip(gradient - 0.2 * peak[..., None], 0.0, None)
+            weights -= 0.2 * peak[..., None]
+            np.maximum(weights, 0.0, out=weights)
             total = weights.sum(axis=-1)
-            shift = (weights * across).sum(axis=-1) / np.maximum(total, 1e-12)
+            shift = (weights @ _ACROSS_32) * half[:, None, None] / np.maximum(total, 1e-12)
             offsets = offsets + np.where(total > 1e-6, shift, 0.0)
-        keep = self.valid & (total > 1e-6) & (np.abs(offsets) < half)
+        keep = self.valid & (total > 1e-6) & (np.abs(offsets) < search[:, None, None])
+        # polarity: a profile that also crosses a strong light-to-dark edge (past a corner where markers
+        # touch, a neighbour's or an occluder's edge) does not see this side's edge alone
+        # (outside the edge only: inside, the marker's own bits can lie within a small marker's profile)
+        keep &= -signed[..., _ACROSS.size // 2 :].min(axis=-1) <= _MAX_OPPOSITE * peak
         # a profile with a weak edge (an occluded or washed-out stretch of the side) is no evidence
         typical = _masked_median(peak, keep)
         keep &= ~(peak < 0.5 * typical[..., None])  # a side without any trusted profile keeps none anyway
-        return self.base + offsets[..., None] * normal, keep
+        return self.base + offsets[..., None] * self.normal[:, :, None, :], keep, typical
 
 
 def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -175,45 +262,55 @@ def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
     By sorting with the masked entries pushed to the end (``np.nanmedian`` goes through masked
     arrays for inputs this small and costs ten times as much)."""
-    ordered = np.sort(np.where(mask, values, np.inf), axis=-1)
-    count = mask.sum(axis=-1)
-    low = np.take_along_axis(ordered, np.maximum((count - 1) // 2, 0)[..., None], axis=-1)[..., 0]
-    high = np.take_along_axis(ordered, np.maximum(count // 2, 0)[..., None], axis=-1)[..., 0]
-    return np.where(count > 0, 0.5 * (low + high), np.nan)
+    ordered = np.sort(np.where(mask, values, np.inf), axis=-1).reshape(-1, values.shape[-1])
+    count = mask.sum(axis=-1).reshape(-1)
+    rows = np.arange(len(count))
+    low = ordered[rows, np.maximum((count - 1) // 2, 0)]
+    high = ordered[rows, count // 2]
+    return np.where(count > 0, 0.5 * (low + high), np.nan).reshape(values.shape[:-1])
 
 
-def _principal_lines(points: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Total least-squares line through each side's masked points: (centre, unit direction, unit normal)."""
-    count = mask.sum(axis=-1)
-    weights = mask / np.maximum(count, 1)[..., None]
-    centre = np.einsum("...s,...sd->...d", weights, points)
-    delta = (points - centre[..., None, :]) * mask[..., None]
-    sxx = np.einsum("...s,...s->...", delta[..., 0], delta[..., 0])
-    sxy = np.einsum("...s,...s->...", delta[..., 0], delta[..., 1])
-    syy = np.einsum("...s,...s->...", delta[..., 1], delta[..., 1])
+def _principal_lines(points: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Total least-squares line through each side's masked points: (centre, unit direction, unit normal,
+    the points' sum of squared distances from it)."""
+    count = np.maximum(mask.sum(axis=-1), 1)[..., None]
+    masked = points * mask[..., None]
+    centre = masked.sum(axis=-2) / count
+    # scatter matrix about the centre, from the raw second moments (pixel coordinates: no cancellation)
+    moments = np.einsum("...sd,...se->...de", masked, points)
+    moments -= count[..., None] * centre[..., :, None] * centre[..., None, :]
+    sxx, sxy, syy = moments[..., 0, 0], moments[..., 0, 1], moments[..., 1, 1]
     # principal axis of [[sxx, sxy], [sxy, syy]]: at angle 0.5 atan2(2 sxy, sxx - syy)
     angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-    direction = np.stack([np.cos(angle), np.sin(angle)], axis=-1)
-    normal = np.stack([-direction[..., 1], direction[..., 0]], axis=-1)
-    return centre, direction, normal
+    cos, sin = np.cos(angle), np.sin(angle)
+    direction = np.stack([cos, sin], axis=-1)
+    normal = np.stack([-sin, cos], axis=-1)
+    squares = 0.5 * (sxx + syy) - np.hypot(0.5 * (sxx - syy), sxy)  # the smaller eigenvalue
+    return centre, direction, normal, np.maximum(squares, 0.0)
 
 
-def _fit_lines(points: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per side (points (M, K, S, 2), ``keep`` (M, K, S)): a total least-squares line, refitted once
-    without the points farther than 3 robust sigmas from it (when enough remain). NaN for a side with
-    fewer than ``_MIN_POINTS`` points."""
-    centre, direction, normal = _principal_lines(points, keep)
-    residual = np.abs(np.einsum("...sd,...d->...s", points - centre[..., None, :], normal))
-    scale = 1.4826 * _masked_median(residual, keep) + 0.02
-    inliers = keep & (residual <= 3.0 * scale[..., None])
-    refit = (inliers.sum(axis=-1) >= _MIN_POINTS) & (inliers.sum(axis=-1) < keep.sum(axis=-1))
-    if refit.any():
-        centre2, direction2, _ = _principal_lines(points, inliers)
-        centre = np.where(refit[..., None], centre2, centre)
-        direction = np.where(refit[..., None], direction2, direction)
-    few = keep.sum(axis=-1) < _MIN_POINTS
-    centre[few] = np.nan
-    return centre, direction
+def _fit_lines(points: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per side (points (M, K, S, 2), ``keep`` (M, K, S)): a total least-squares line, refitted without the
+    points farther than a few robust sigmas from it (so a neighbour's edge near a corner, or an occluder's,
+    does not pull it), with what tells whether to trust it.
+
+    Returns (centre, direction, count, rms, extent): the line (centre NaN for a side with fewer than
+    ``_MIN_POINTS`` points), how many points it keeps, their RMS distance from it, and how many sample
+    steps lie from the first of them to the last (the samples are evenly spaced along the side)."""
+    inliers = keep
+    centre, direction, normal, squares = _principal_lines(points, inliers)
+    for _ in range(_TRIM_ITERATIONS):
+        residual = np.abs(np.einsum("...sd,...d->...s", points - centre[..., None, :], normal))
+        scale = 1.4826 * _masked_median(residual, inliers) + 0.02
+        trimmed = keep & (residual <= _TRIM_SIGMAS * scale[..., None])
+        inliers = np.where((trimmed.sum(axis=-1) >= _MIN_POINTS)[..., None], trimmed, inliers)
+        centre, direction, normal, squares = _principal_lines(points, inliers)
+    count = inliers.sum(axis=-1)
+    rms = np.sqrt(squares / np.maximum(count, 1))
+    last = keep.shape[-1] - 1 - np.argmax(inliers[..., ::-1], axis=-1)
+    extent = last - np.argmax(inliers, axis=-1)
+    centre = np.where((count >= _MIN_POINTS)[..., None], centre, np.nan)
+    return centre, direction, count, rms, extent
 
 
 def _intersect(p: np.ndarray, u: np.ndarray, q: np.ndarray, v: np.ndarray) -> np.ndarray:
