@@ -253,6 +253,7 @@ class FilterConfig:
     flip_angle_deg: float = 10.0  # orientation uncertainty (3 sigma) above this is not vouched for as tracked
     tilt_accel_rad_s2: float = 3.0  # motion model of the tilt that tells the two branches apart
     crossing_blind_s: float = 0.3  # branches indistinguishable longer than this: the commitment ends
+    repeat_grey: float = 0.75  # a frame within this mean grey difference of the last one repeats it (0: exact)
 
 
 @dataclass(frozen=True)
@@ -656,6 +657,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         flip_angle_deg=ft.take("flip_angle_deg", float, fd.flip_angle_deg, _in_range(0.0, 180.0)),
         tilt_accel_rad_s2=ft.take("tilt_accel_rad_s2", float, fd.tilt_accel_rad_s2, _positive),
         crossing_blind_s=ft.take("crossing_blind_s", float, fd.crossing_blind_s, _in_range(0.0, 3600.0)),
+        repeat_grey=ft.take("repeat_grey", float, fd.repeat_grey, _in_range(0.0, 255.0)),
     )
     ft.done()
 

@@ -1,33 +1,43 @@
-"""Temporal filtering: resolve the planar flip with evidence over time, and smooth the pose.
+"""Temporal filtering: resolve the planar flip with evidence over time, and smooth the pose, without
+ever making the pose worse than the per-frame measurements it is fed.
 
 Per target, a :class:`TargetTrack` carries
 
 * **two branches**, one per IPPE solution. The two solutions of a square are mirror images through
   the line of sight (their normals' tilts away from it are opposite), so a small Kalman filter on
   branch 0's tilt (:class:`_TiltTracker`) tells which solution continues which branch, through
-  crossings too (a view through fronto-parallel): where the noise hides which is which it coasts
-  on its velocity instead of guessing.
-* **evidence** for branch 0 against branch 1 over a window of frames: per frame, the difference of
-  their RMS reprojection errors. A branch is *committed* (state ``tracked``) only when the window's
-  mean difference exceeds ``decide_margin_px`` with ``decide_z`` standard errors of confidence. The
-  margin is there because a corner detector's own bias (a few hundredths of a pixel) differs
-  systematically between the branches too: evidence below it never decides, however long one
-  waits. Such a target stays ``ambiguous``, and its output holds a steady best guess. Once
-  committed, a switch needs stronger, sustained evidence (``switch_margin_px``, ``switch_z``).
+  crossings too (a view through fronto-parallel). It cannot go blind: unclear frames update it with
+  inflated noise, its rate and uncertainty are bounded, and after a gap it restarts at rest from the
+  branch's last measured orientation. Where the branch smoothers' own motion prediction contradicts
+  the tilt's assignment, the frame's assignment is in doubt: no evidence is taken from it and
+  nothing is vouched for.
+* **evidence** for branch 0 against branch 1 over ``evidence_window_s``: per frame, the difference of
+  their RMS reprojection errors. A branch is *committed* only when the window's mean difference
+  exceeds ``decide_margin_px`` with ``decide_z`` standard errors of confidence. The margin is there
+  because a corner detector's own bias (a few hundredths of a pixel) differs systematically between
+  the branches too: evidence below it never decides, however long one waits. Such a target stays
+  ``ambiguous``, and its output is a best guess that follows the per-frame pick's tendency without
+  its flicker. A committed branch moves on sustained evidence (``switch_margin_px``, ``switch_z``) or,
+  self-correcting, on ``decisive_frames`` frames that contradict it (the first one *decisive*: the
+  other solution alone, or much better by ``decisive_ratio`` and ``decisive_sigmas``).
 * a **smoother** per branch: an error-state Kalman filter on SO(3) (rotation error as a body-frame
   rotation vector, so no Euler angles and no trouble near 180 degrees) and, shared, one on
   translation, each an IMM (``filterpy``) of a *still* model that averages a static marker over many
-  frames and a *moving* constant-velocity model that follows real motion without lag. Measurement
-  noise is the pose covariance implied by the corner noise through the projection Jacobian: it grows
-  with distance and shrinks with marker size in pixels; the corner noise is estimated online.
-* **dropouts**: missed frames are predicted (state ``predicted``) for up to ``max_missed_frames``;
-  a target that returns is associated to its branches by prediction, so it re-acquires without a flip.
+  frames and a *moving* constant-velocity model. Measurement noise is the pose covariance implied by
+  the corner noise through the projection Jacobian (it grows with distance and shrinks with marker
+  size in pixels; the corner noise is estimated online, and a blurred frame's larger residuals make
+  its own measurement count less). No measurement is rejected: a smoother it lands far from restarts
+  from it. The output is held within ``output_sigmas`` standard deviations of this frame's
+  measurement (``output_sigmas_moving`` unless the measurements stayed put for ``still_s``), so
+  smoothing lowers jitter but cannot lag behind real motion.
+* **dropouts**: a missed frame is predicted (state ``predicted``, velocity decaying with
+  ``predict_damping_s``) for at most ``predict_s`` and only while the motion since the last
+  measurement may have moved the target less than ``predict_max_deg``; then nothing is published, but
+  the track keeps its branches and evidence for ``memory_s``: a target that returns is not new.
 
-A measured frame whose orientation jumps by more than ``flip_angle_deg`` while the position moves
-less than ``flip_translation_m`` (plus its noise) is treated as a flip, not as motion, unless it
-persists. While the position stays put the output turns at most ``max_output_step_deg`` per frame,
-so even a correction slews instead of snapping. ``tracked`` is only said of the committed branch,
-settled (not slewing), and with an orientation whose 3-sigma uncertainty is below a flip.
+``tracked`` is only said of the committed branch, measured this frame as the lower-error solution,
+with no contradicting frame open, no doubt about the assignment, and an orientation whose 3-sigma
+uncertainty is below ``flip_angle_deg``. All time constants are in seconds.
 """
 
 from __future__ import annotations
@@ -341,7 +351,7 @@ class TranslationFilter:
 
 @dataclass(frozen=True)
 class TrackEvent:
-    """Something a user may want to see on the timeline: a commit, a switch, a rejected flip, a reset."""
+    """Something a user may want to see on the timeline: a start, commit, switch, uncommit, re-acquisition, reset."""
 
     kind: str
     message: str
@@ -458,6 +468,7 @@ class TargetTrack:
     """The filter state of one target (see the module doc)."""
 
     _RECENT_S = 0.3  # the best guess of an undecided target leans on this much recent evidence
+    _OUTLIER_RATIO = 3.0  # a frame with this many times the usual residual is not vouched for
 
     def __init__(self, config: FilterConfig, points_in_target: np.ndarray) -> None:
         self.config = config
@@ -472,8 +483,11 @@ class TargetTrack:
         self.measured_ns: int | None = None  # the last frame measured
         self.sigma_px = config.corner_noise_px
         self._frame_sigma = config.corner_noise_px
-        self.against = 0  # consecutive decisive frames against the output branch
+        self.against = 0.0  # contradicting frames in a row (a decisive one counts 1, a leaning one 1/3)
+        self.run = 0  # ... and how many frames that run has: from its second, the output is the frame's pick
         self.doubtful = False  # this frame's assignment of solutions to branches is in doubt
+        self.unconfirmed = False  # re-acquired after a gap, no frame has confirmed the commitment yet
+        self.outlier = False  # this frame's residual is far above the track's usual one
         self.frames = 0
         self._output: Pose | None = None  # the last published measured output
         self._velocity: tuple[np.ndarray, np.ndarray] = (np.zeros(3), np.zeros(3))  # omega (body), v (camera)
@@ -545,6 +559,7 @@ class TargetTrack:
         if latest is not None:
             self.evidence.append(latest)
         self.against = 0
+        self.run = 0
 
     def _verdict(self, assigned: list[PoseHypothesis | None]) -> tuple[int | None, int | None]:
         """What this frame alone says: the branch it vouches for (the only solution, or the one the other
@@ -564,8 +579,9 @@ class TargetTrack:
 
     def _best_guess(self, decisive: int | None) -> int:
         """While undecided: this frame's decisive solution if there is one, else the branch the recent
-        evidence leans to (by more than half the decision margin), else the current output branch: a
-        steady guess that follows the per-frame pick's tendency without its flicker."""
+        evidence leans to (by more than half the decision margin), else the branch the whole window's
+        evidence favours however slightly (on far, undecidable markers the per-frame pick is right more
+        often than not, and the window's mean more often still), else the current output branch."""
         if decisive is not None:
             return decisive
         assert self.last_ns is not None
@@ -573,6 +589,10 @@ class TargetTrack:
         if recent.size:
             mean = float(recent.mean())
             if abs(mean) > 0.5 * self.config.decide_margin_px * self._margin_scale():
+                return 0 if mean > 0 else 1
+        if self.evidence:  # too little to decide on is still more than one frame's pick
+            mean = float(np.mean([v for _, v in self.evidence]))
+            if mean != 0.0:
                 return 0 if mean > 0 else 1
         return self.output_branch
 
@@ -605,6 +625,8 @@ class TargetTrack:
             restart = gap_s > self.config.restart_gap_s
             if restart:
                 events.append(TrackEvent("reacquired", f"seen again after {gap_s:.2f} s"))
+                self.unconfirmed = True  # which solution is which was carried over the gap: not vouched
+                # for until a frame leans the committed way
             assigned = self._associate(measurement, camera, gap_s, restart, events)
             self._update_branches(assigned, camera, gap_s, restart)
             self._update_translation(measurement, camera, gap_s, restart)
@@ -613,19 +635,22 @@ class TargetTrack:
         self._decide(events)
         decisive, lean = self._verdict(assigned)
         if self.committed is not None:
-            # Self-correcting: a run of frames that contradict the commitment (started by a decisive one,
-            # continued by decisive or leaning ones) moves it after ``decisive_frames``; while such a run
-            # is open the output is this frame's lower-error solution, and nothing is vouched for.
+            # Self-correcting: a run of frames that contradict the commitment moves it after
+            # ``decisive_frames`` (a decisive frame counts one, a leaning one a third); from the run's
+            # second frame on the output is the frame's lower-error solution, and nothing is vouched for.
             favoured = decisive if decisive is not None else lean
             if favoured == self.committed:
                 self.against = 0
-            elif favoured is not None and (decisive is not None or self.against > 0):
-                self.against += 1
-                if self.against >= self.config.decisive_frames:
-                    self._switch(favoured, f"on {self.against} contradicting frames", events)
+                self.run = 0
+                self.unconfirmed = False
+            elif favoured is not None:
+                self.against += 1.0 if decisive is not None else 1.0 / 3.0  # a leaning frame counts a third
+                self.run += 1
+                if self.against >= self.config.decisive_frames - 1e-9:
+                    self._switch(favoured, "on contradicting frames", events)
         if self.committed is None:
             target = self._best_guess(decisive)
-        elif (self.against > 0 or self.doubtful) and assigned[0] is not None and assigned[1] is not None:
+        elif (self.run >= 2 or self.doubtful) and assigned[0] is not None and assigned[1] is not None:
             target = 0 if assigned[0].reproj_px <= assigned[1].reproj_px else 1
         else:
             target = self.committed
@@ -647,6 +672,8 @@ class TargetTrack:
             and decisive in (None, self.output_branch)
             and self.against == 0
             and not self.doubtful
+            and not self.unconfirmed
+            and not self.outlier
             and self._raw_pick(assigned) in (None, self.output_branch)
             and not self._too_uncertain(covariance)
         )
@@ -671,6 +698,7 @@ class TargetTrack:
         self.committed = None
         self.evidence.clear()
         self.against = 0
+        self.run = 0
         best = hypotheses[0].pose
         _, cov_t = self._covariance(best, camera)
         self.translation_filter = TranslationFilter(
@@ -737,6 +765,7 @@ class TargetTrack:
             self.committed = None
             self.evidence.clear()
             self.against = 0
+            self.run = 0
         return assigned
 
     @staticmethod
@@ -773,8 +802,12 @@ class TargetTrack:
 
     def _update_noise(self, measurement: MarkerPose | BoardPose) -> None:
         """The corner noise: a slow estimate from the residuals, and this frame's own (a blurred frame's
-        residuals are larger): its measurement is trusted by the larger of the two."""
+        residuals are larger): its measurement is trusted by the larger of the two. A frame whose residual
+        is ``_OUTLIER_RATIO`` times the track's usual one (motion blur, rolling shutter, a partly hidden
+        marker) may be off by more than its noise says: it is not vouched for."""
         estimate = measurement.best.reproj_px * _RESIDUAL_TO_SIGMA
+        usual = max(self.sigma_px, self.config.corner_noise_px)
+        self.outlier = self.frames > 1 and estimate > self._OUTLIER_RATIO * usual
         self.sigma_px = max(self.config.corner_noise_px, 0.9 * self.sigma_px + 0.1 * estimate)
         self._frame_sigma = max(self.sigma_px, estimate)
 

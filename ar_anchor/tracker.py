@@ -14,6 +14,7 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from .camera import CameraModel
@@ -57,7 +58,7 @@ class TargetResult:
     corners_in_image: np.ndarray | None = None
     branch_poses: tuple[Pose | None, ...] = ()  # this frame's solution on each filter branch
     evidence_px: float = math.nan  # signed flip evidence (+: branch 0), see filtering.py
-    events: tuple[str, ...] = ()  # filter events this frame (commits, switches, rejected flips, resets)
+    events: tuple[str, ...] = ()  # filter events this frame (commits, switches, re-acquisitions, resets)
     outline_in_target: np.ndarray | None = None  # (K, 4, 3) the target's marker squares, target frame
     markers_used: tuple[int, ...] = ()  # boards: ids of the inlier markers this frame
     outlier_ids: tuple[int, ...] = ()  # boards: markers seen but rejected this frame
@@ -177,13 +178,25 @@ class Tracker:
 
     def process(self, frame: Frame) -> FrameResult:
         fingerprint = np.ascontiguousarray(frame.image[::4, ::4])
-        previous, self._fingerprint = self._fingerprint, fingerprint
-        if self._previous is not None and previous is not None and np.array_equal(previous, fingerprint):
-            # a repeated frame (a 30 fps container carrying 12 fps content): the same pixels are no new
+        if self._previous is not None and self._repeats(fingerprint):
+            # a repeated frame (a 30 fps container carrying 12 fps content): the same content is no new
             # evidence; the last answer stands, with this frame's index and time
             return self._repeat(frame)
+        self._fingerprint = fingerprint
         self._previous = self._process(frame)
         return self._previous
+
+    def _repeats(self, fingerprint: np.ndarray) -> bool:
+        """Is this the last tracked frame's content again: every 4th pixel the same to within
+        ``[filter] repeat_grey`` grey levels on average (a repeated frame re-encoded by a lossy codec is
+        not bit-identical)?"""
+        previous = self._fingerprint
+        if previous is None or previous.shape != fingerprint.shape:
+            return False
+        tolerance = self.config.filter.repeat_grey
+        if tolerance <= 0:
+            return bool(np.array_equal(previous, fingerprint))
+        return float(cv2.absdiff(previous, fingerprint).mean()) < tolerance
 
     def _repeat(self, frame: Frame) -> FrameResult:
         assert self._previous is not None

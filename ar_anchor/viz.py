@@ -15,7 +15,7 @@ Entity tree
 ``metrics/latency/<stage>``       per-stage time, milliseconds
 ``metrics/flip_evidence_px/<target>``  the filter's flip evidence (signed: + favours branch 0)
 ``world/hypotheses/<target>/branch_<k>``  this frame's solution on each filter branch, faint
-``events``                        state changes, commits, switches, rejected flips, resets (TextLog)
+``events``                        state changes, commits, switches, re-acquisitions, resets (TextLog)
 
 Timelines: ``frame`` (sequence) and ``time`` (seconds since the stream's start).
 Rerun places pixel *corners* at integers, OpenCV pixel *centres*: 2D positions are shifted by
@@ -408,7 +408,7 @@ class RerunRecorder:
                 self._states[name] = target.state
                 rec.log("events", rr.TextLog(f"{name}: state {previous_state or '-'} -> {target.state}", level="INFO"))
             for event in target.events:
-                level = "WARN" if event.startswith(("rejected_flip", "switch", "uncommit", "accepted_jump")) else "INFO"
+                level = "WARN" if event.startswith(("switch", "uncommit")) else "INFO"
                 rec.log("events", rr.TextLog(f"{name}: {event}", level=level))
             if truth is not None and name in truth:
                 error = angle_between_deg(target.pose.rotation, truth[name].rotation)

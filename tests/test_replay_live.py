@@ -352,11 +352,11 @@ def test_replay_of_a_real_video(realdata, tmp_path):
     assert summary["source_ended_early"] is False
     rows = read_poses(tmp_path / "out" / "poses.csv")
     assert rows and max(int(r["frame"]) for r in rows) <= 148
-    # and exactly what was asked is tracked: no demo board (its ids 10-13 are on this sheet too), so
-    # markers 10-13 are lone markers of --marker-length like the rest
+    # and exactly what was asked is tracked: no demo board (its ids 10-13 include this sheet's 12), so
+    # marker 12 is a lone marker of --marker-length like the rest
     targets = {r["target"] for r in rows}
     assert not any(t.startswith("board:") for t in targets), sorted(targets)
-    assert {"marker:10", "marker:12"} <= targets
+    assert {"marker:8", "marker:12", "marker:16"} <= targets
     verify_rrd(tmp_path / "out" / "recording.rrd")
 
 
@@ -558,8 +558,13 @@ def test_live_record_then_replay_is_frame_exact(tmp_path):
     ok, image = capture.read()
     capture.release()
     assert ok and image.shape[:2] == (360, 640)
-    # when the recording is replayed (camera.yml is found beside raw.mkv)
-    replay = run_cli(["-q", "replay", str(out / "raw.mkv"), "--out", "out2", "--video-out", "replay.mkv"], tmp_path)
+    # when the recording is replayed (camera.yml is found beside raw.mkv) with the config the synthetic
+    # camera ran with (the demo scene's: a real recording tracks exactly what its --config says)
+    demo = Path(__file__).resolve().parents[1] / "configs" / "demo.toml"
+    replay = run_cli(
+        ["-q", "replay", str(out / "raw.mkv"), "--config", str(demo), "--out", "out2", "--video-out", "replay.mkv"],
+        tmp_path,
+    )
     assert replay.returncode == 0, describe(replay)
     assert_no_traceback(replay)
     assert count_decoded_frames(tmp_path / "replay.mkv") == 15
