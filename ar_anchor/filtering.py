@@ -468,7 +468,7 @@ class TargetTrack:
     """The filter state of one target (see the module doc)."""
 
     _RECENT_S = 0.3  # the best guess of an undecided target leans on this much recent evidence
-    _OUTLIER_RATIO = 3.0  # a frame with this many times the usual residual is not vouched for
+    _OUTLIER_RATIO = 2.5  # a frame with this many times the usual residual is not vouched for
 
     def __init__(self, config: FilterConfig, points_in_target: np.ndarray) -> None:
         self.config = config
@@ -488,9 +488,12 @@ class TargetTrack:
         self.doubtful = False  # this frame's assignment of solutions to branches is in doubt
         self.unconfirmed = False  # re-acquired after a gap, no frame has confirmed the commitment yet
         self.outlier = False  # this frame's residual is far above the track's usual one
+        self._usual_px: float | None = None
         self.frames = 0
         self._output: Pose | None = None  # the last published measured output
         self._velocity: tuple[np.ndarray, np.ndarray] = (np.zeros(3), np.zeros(3))  # omega (body), v (camera)
+        self._was_still = False  # the output branch's measurements stayed put for still_s (see _still)
+        self._settled_deg = math.inf  # ... turning this much over it
         self._rate = math.inf  # last measured rate of change (turn + shift / distance), rad/s
         self._history: collections.deque[tuple[int, int, Pose]] = collections.deque()  # (branch, ns, measured)
         self._covariances: dict[int, tuple[Pose, tuple[np.ndarray, np.ndarray]]] = {}  # this frame's, by pose
@@ -598,9 +601,16 @@ class TargetTrack:
 
     # ------------------------------------------------------------------ per frame
     def update(
-        self, measurement: MarkerPose | BoardPose | None, timestamp_ns: int, camera: CameraModel
+        self,
+        measurement: MarkerPose | BoardPose | None,
+        timestamp_ns: int,
+        camera: CameraModel,
+        *,
+        blurred: bool = False,
     ) -> TrackUpdate | None:
-        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen).
+        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen). ``blurred``: the
+        whole frame is much less sharp than usual (the camera moved fast): a measurement in it is not
+        vouched for, and a target lost in it is not predicted (its motion is unknown).
 
         Returns None when there is nothing to publish: no track, a gap too long to predict through
         (the track stays :attr:`alive`, keeping its flip memory, until ``memory_s``), or a reset.
@@ -611,7 +621,7 @@ class TargetTrack:
         events: list[TrackEvent] = []
         self._covariances.clear()
         if measurement is None:
-            return self._coast(timestamp_ns, events)
+            return self._coast(timestamp_ns, events, blurred)
         self.points = np.asarray(measurement.points_in_target, dtype=np.float64)
         self._update_noise(measurement)
         gap_s = math.inf if self.measured_ns is None else (timestamp_ns - self.measured_ns) * 1e-9
@@ -625,8 +635,8 @@ class TargetTrack:
             restart = gap_s > self.config.restart_gap_s
             if restart:
                 events.append(TrackEvent("reacquired", f"seen again after {gap_s:.2f} s"))
-                self.unconfirmed = True  # which solution is which was carried over the gap: not vouched
-                # for until a frame leans the committed way
+                self.unconfirmed = True  # which solution is which was carried over the gap: the frame's
+                # own pick is shown, and nothing vouched for, until a frame leans the committed way
             assigned = self._associate(measurement, camera, gap_s, restart, events)
             self._update_branches(assigned, camera, gap_s, restart)
             self._update_translation(measurement, camera, gap_s, restart)
@@ -636,8 +646,10 @@ class TargetTrack:
         decisive, lean = self._verdict(assigned)
         if self.committed is not None:
             # Self-correcting: a run of frames that contradict the commitment moves it after
-            # ``decisive_frames`` (a decisive frame counts one, a leaning one a third); from the run's
-            # second frame on the output is the frame's lower-error solution, and nothing is vouched for.
+            # ``decisive_frames`` (a decisive frame counts one, a leaning one a third). The output is the
+            # frame's lower-error solution from a decisive frame or the run's second frame on (on hand-held
+            # clips with truth such frames are right far more often than the commitment), and nothing is
+            # vouched for while the run is open.
             favoured = decisive if decisive is not None else lean
             if favoured == self.committed:
                 self.against = 0
@@ -650,7 +662,9 @@ class TargetTrack:
                     self._switch(favoured, "on contradicting frames", events)
         if self.committed is None:
             target = self._best_guess(decisive)
-        elif (self.run >= 2 or self.doubtful) and assigned[0] is not None and assigned[1] is not None:
+        elif (self.run >= 2 or (self.run and decisive is not None) or self.doubtful or self.unconfirmed) and (
+            None not in assigned
+        ):
             target = 0 if assigned[0].reproj_px <= assigned[1].reproj_px else 1
         else:
             target = self.committed
@@ -674,6 +688,7 @@ class TargetTrack:
             and not self.doubtful
             and not self.unconfirmed
             and not self.outlier
+            and not blurred
             and self._raw_pick(assigned) in (None, self.output_branch)
             and not self._too_uncertain(covariance)
         )
@@ -806,8 +821,10 @@ class TargetTrack:
         is ``_OUTLIER_RATIO`` times the track's usual one (motion blur, rolling shutter, a partly hidden
         marker) may be off by more than its noise says: it is not vouched for."""
         estimate = measurement.best.reproj_px * _RESIDUAL_TO_SIGMA
-        usual = max(self.sigma_px, self.config.corner_noise_px)
-        self.outlier = self.frames > 1 and estimate > self._OUTLIER_RATIO * usual
+        usual = self._usual_px
+        self.outlier = usual is not None and estimate > self._OUTLIER_RATIO * max(usual, self.config.corner_noise_px)
+        if not self.outlier:  # the usual residual, slowly, from the frames that are not outliers
+            self._usual_px = estimate if usual is None else 0.95 * usual + 0.05 * estimate
         self.sigma_px = max(self.config.corner_noise_px, 0.9 * self.sigma_px + 0.1 * estimate)
         self._frame_sigma = max(self.sigma_px, estimate)
 
@@ -871,8 +888,8 @@ class TargetTrack:
             measured = hypothesis.pose
             cov_rot, cov_t = self._covariance(measured, camera)
             # a still target is averaged over many frames; a moving one follows its measurements closely
-            still = self._still(measured, cov_rot, cov_t)
-            k = self.config.output_sigmas if still else self.config.output_sigmas_moving
+            still = self._was_still = self._still(measured, cov_rot, cov_t)
+            k = self.config.output_sigmas if still and not self.outlier else self.config.output_sigmas_moving
             error = so3_log(measured.rotation.T @ rotation)  # body-frame error, as the covariance's
             rotation = measured.rotation @ so3_exp(_within(error, cov_rot, k))
             translation = measured.tvec + _within(translation - measured.tvec, cov_t, k)
@@ -904,11 +921,12 @@ class TargetTrack:
             return False  # not seen long enough to tell
         turned = so3_log(then.rotation.T @ measured.rotation)
         moved = measured.tvec - then.tvec
+        self._settled_deg = math.degrees(float(np.linalg.norm(turned)))
         return bool(
             turned @ np.linalg.solve(2.0 * cov_rot, turned) < 9.0 and moved @ np.linalg.solve(2.0 * cov_t, moved) < 9.0
         )
 
-    def _coast(self, timestamp_ns: int, events: list[TrackEvent]) -> TrackUpdate | None:
+    def _coast(self, timestamp_ns: int, events: list[TrackEvent], blurred: bool = False) -> TrackUpdate | None:
         """A frame without a measurement: a short prediction (velocity decaying with
         ``predict_damping_s``) for up to ``predict_s``; then nothing is published, but the track keeps
         its branches and evidence until ``memory_s``, so a target that returns is not a new track."""
@@ -920,12 +938,13 @@ class TargetTrack:
             self.branches = None
             events.append(TrackEvent("reset", f"lost for more than {cfg.memory_s:g} s: reset"))
             return None
-        if gap_s > cfg.predict_s or self._output is None:
+        if gap_s > cfg.predict_s or self._output is None or blurred:
             return None
         tau = cfg.predict_damping_s
         reach = tau * (1.0 - math.exp(-gap_s / tau))  # integral of exp(-t / tau) over the gap
         omega, velocity = self._velocity
-        if math.degrees(self._prediction_doubt(omega, gap_s, reach)) > cfg.predict_max_deg:
+        settled = self._was_still and self._settled_deg <= cfg.predict_max_deg
+        if not settled and math.degrees(self._prediction_doubt(omega, gap_s, reach)) > cfg.predict_max_deg:
             return None  # not trustworthy: publish nothing rather than a guess
         rotation = self._output.rotation @ so3_exp(omega * reach)
         pose = Pose.from_matrix(rotation, self._output.tvec + velocity * reach)

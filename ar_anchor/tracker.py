@@ -98,6 +98,8 @@ class Tracker:
     >>> result.targets["marker:0"].pose.tvec   # doctest: +SKIP
     """
 
+    _BLUR_RATIO = 0.6  # a frame this much less sharp than usual is motion-blurred
+
     def __init__(self, config: TrackerConfig, camera: CameraModel) -> None:
         self.config = config
         self.camera = camera
@@ -109,6 +111,7 @@ class Tracker:
         self._last_corners: dict[int, np.ndarray] = {}
         self._before_corners: dict[int, np.ndarray] = {}
         self._fingerprint: np.ndarray | None = None  # every 4th pixel of the last frame (repeats)
+        self._sharpness: float | None = None  # typical variance of the fingerprint's Laplacian (blur)
         self._previous: FrameResult | None = None
         self._seen: dict[int, tuple[np.ndarray, int]] = {}  # marker id -> (last corners, when)
         self._frames_since_full = 0
@@ -183,8 +186,25 @@ class Tracker:
             # evidence; the last answer stands, with this frame's index and time
             return self._repeat(frame)
         self._fingerprint = fingerprint
-        self._previous = self._process(frame)
+        self._previous = self._process(frame, self._blurred(fingerprint))
         return self._previous
+
+    def _blurred(self, fingerprint: np.ndarray) -> bool:
+        """Is this frame motion-blurred (a quick turn), not merely missing a marker? Sharpness is the
+        Laplacian's variance of every 4th pixel over that of a half-size copy: blur takes the fine scale
+        away first, while removing content (a marker out of view) lowers both alike. Blurred: below
+        ``_BLUR_RATIO`` of its running typical value."""
+        grey = cv2.cvtColor(fingerprint, cv2.COLOR_BGR2GRAY) if fingerprint.ndim == 3 else fingerprint
+        grey = grey.astype(np.float32)
+        coarse = float(cv2.Laplacian(cv2.pyrDown(grey), cv2.CV_32F).var()) if min(grey.shape[:2]) >= 16 else 0.0
+        if coarse <= 1e-6:
+            return False
+        sharpness = float(cv2.Laplacian(grey, cv2.CV_32F).var()) / coarse
+        typical = self._sharpness
+        blurred = typical is not None and sharpness < self._BLUR_RATIO * typical
+        if not blurred:
+            self._sharpness = sharpness if typical is None else 0.9 * typical + 0.1 * sharpness
+        return blurred
 
     def _repeats(self, fingerprint: np.ndarray) -> bool:
         """Is this the last tracked frame's content again: every 4th pixel the same to within
@@ -210,7 +230,7 @@ class Tracker:
             repeated=True,
         )
 
-    def _process(self, frame: Frame) -> FrameResult:
+    def _process(self, frame: Frame, blurred: bool = False) -> FrameResult:
         camera = self.camera_for(frame.size)
         t0 = time.perf_counter()
         detections = self._detect(frame.image, camera, frame.timestamp_ns)
@@ -242,7 +262,7 @@ class Tracker:
                 measured[board.target] = board
         t2 = time.perf_counter()
         if self.config.filter.enabled:
-            targets = self._filter(measured, frame.timestamp_ns, camera)
+            targets = self._filter(measured, frame.timestamp_ns, camera, blurred)
         else:
             targets = {name: self._raw_result(name, solved, camera) for name, solved in measured.items()}
         t3 = time.perf_counter()
@@ -250,7 +270,7 @@ class Tracker:
         return FrameResult(frame.index, frame.timestamp_ns, detections, targets, tuple(failures), latency, camera)
 
     def _filter(
-        self, measured: dict[str, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel
+        self, measured: dict[str, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
     ) -> dict[str, TargetResult]:
         targets: dict[str, TargetResult] = {}
         for name in sorted(set(measured) | set(self.tracks), key=_target_order):
@@ -259,7 +279,7 @@ class Tracker:
             if track is None:
                 assert solved is not None
                 track = self.tracks[name] = TargetTrack(self.config.filter, solved.points_in_target)
-            update = track.update(solved, timestamp_ns, camera)
+            update = track.update(solved, timestamp_ns, camera, blurred=blurred)
             for event in update.events if update is not None else ():
                 log.info("%s: %s", name, event.message)
             if update is None:  # nothing to publish: a gap too long to predict through, or lost for good
@@ -324,6 +344,7 @@ class Tracker:
         """Forget all tracks (e.g. after a cut in the video)."""
         self.tracks.clear()
         self._previous = self._fingerprint = None
+        self._sharpness = None
 
 
 def _target_order(name: str) -> tuple[str, int, str]:

@@ -169,10 +169,11 @@ def test_track_commits_on_evidence_and_holds_its_branch_against_single_frame_fli
     track = TargetTrack(FilterConfig(), marker_corners_in_marker(0.05))
     states = []
     for k in range(30):
-        # the wrong solution reprojects 0.3 px worse, except in frame 20 where noise makes it look better
+        # the wrong solution reprojects 0.3 px worse, except in frame 20 where noise makes it look a little
+        # better (not decisively: a decisive frame is shown, see test_pose_truth)
         better_wrong = k == 20
         measurement = hypotheses_for(
-            truth, mirrored(truth), camera, 0.4 if better_wrong else 0.1, 0.1 if better_wrong else 0.4
+            truth, mirrored(truth), camera, 0.25 if better_wrong else 0.1, 0.12 if better_wrong else 0.4
         )
         update = track.update(measurement, int(k * DT * 1e9), camera)
         states.append(update.state)
