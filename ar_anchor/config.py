@@ -250,6 +250,7 @@ class FilterConfig:
     output_sigmas_moving: float = 0.5  # a moving one's within this many
     reset_angle_deg: float = 15.0  # a branch's measurement this far from its smoother restarts it
     max_angular_rate_deg_s: float = 720.0  # the smoothers' angular velocity is bounded by this
+    spike_translation_m: float = 0.01  # an orientation jump above flip_angle_deg with less motion: held 1 frame
     flip_angle_deg: float = 10.0  # orientation uncertainty (3 sigma) above this is not vouched for as tracked
     tilt_accel_rad_s2: float = 3.0  # motion model of the tilt that tells the two branches apart
     crossing_blind_s: float = 0.3  # branches indistinguishable longer than this: the commitment ends
@@ -654,6 +655,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         output_sigmas_moving=ft.take("output_sigmas_moving", float, fd.output_sigmas_moving, _in_range(0.0, 100.0)),
         reset_angle_deg=ft.take("reset_angle_deg", float, fd.reset_angle_deg, _in_range(0.1, 180.0)),
         max_angular_rate_deg_s=ft.take("max_angular_rate_deg_s", float, fd.max_angular_rate_deg_s, _in_range(1.0, 1e5)),
+        spike_translation_m=ft.take("spike_translation_m", float, fd.spike_translation_m, _in_range(0.0, 10.0)),
         flip_angle_deg=ft.take("flip_angle_deg", float, fd.flip_angle_deg, _in_range(0.0, 180.0)),
         tilt_accel_rad_s2=ft.take("tilt_accel_rad_s2", float, fd.tilt_accel_rad_s2, _positive),
         crossing_blind_s=ft.take("crossing_blind_s", float, fd.crossing_blind_s, _in_range(0.0, 3600.0)),

@@ -488,6 +488,8 @@ class TargetTrack:
         self.doubtful = False  # this frame's assignment of solutions to branches is in doubt
         self.unconfirmed = False  # re-acquired after a gap, no frame has confirmed the commitment yet
         self.outlier = False  # this frame's residual is far above the track's usual one
+        self._leaning = False  # an undecided target's frame or recent evidence chose its output branch
+        self._held_spike = False  # the last frame's output jump was held back (see _spike)
         self._usual_px: float | None = None
         self.frames = 0
         self._output: Pose | None = None  # the last published measured output
@@ -585,6 +587,7 @@ class TargetTrack:
         evidence leans to (by more than half the decision margin), else the branch the whole window's
         evidence favours however slightly (on far, undecidable markers the per-frame pick is right more
         often than not, and the window's mean more often still), else the current output branch."""
+        self._leaning = True
         if decisive is not None:
             return decisive
         assert self.last_ns is not None
@@ -593,6 +596,7 @@ class TargetTrack:
             mean = float(recent.mean())
             if abs(mean) > 0.5 * self.config.decide_margin_px * self._margin_scale():
                 return 0 if mean > 0 else 1
+        self._leaning = False
         if self.evidence:  # too little to decide on is still more than one frame's pick
             mean = float(np.mean([v for _, v in self.evidence]))
             if mean != 0.0:
@@ -628,6 +632,7 @@ class TargetTrack:
         self.measured_ns = timestamp_ns
         self.frames += 1
         self.doubtful = False
+        restart_frame = self.branches is None or gap_s > self.config.restart_gap_s
         if self.branches is None:
             assigned = self._start(measurement, camera)
             events.append(TrackEvent("start", "track started"))
@@ -670,7 +675,9 @@ class TargetTrack:
             target = self.committed
         if assigned[target] is None and assigned[1 - target] is not None:
             target = 1 - target  # the only solution this frame (the other failed validation) is shown
+        moved_branch = False
         if target != self.output_branch and self.branches is not None and self.branches[target] is not None:
+            moved_branch = True
             events.append(
                 TrackEvent(
                     "branch",
@@ -679,8 +686,14 @@ class TargetTrack:
             )
             self.output_branch = target
         pose, covariance = self._measured_output(assigned, camera)
+        spike = not moved_branch and not restart_frame and self._spike(pose)
+        if spike:
+            events.append(TrackEvent("spike", "orientation jump in place held for one frame"))
+            assert self._output is not None
+            pose = Pose.from_matrix(self._output.rotation, pose.tvec)
         vouched = (
-            self.committed is not None
+            not spike
+            and self.committed is not None
             and self.committed == self.output_branch
             and assigned[self.output_branch] is not None
             and decisive in (None, self.output_branch)
@@ -894,10 +907,50 @@ class TargetTrack:
             rotation = measured.rotation @ so3_exp(_within(error, cov_rot, k))
             translation = measured.tvec + _within(translation - measured.tvec, cov_t, k)
             covariance = cov_rot
+            other = self._undecided_other(assigned)
+            if other is not None:
+                rotation = _halfway(rotation, self._held(other, assigned, camera, k))
         omega = branch.smoother.omega
         velocity = self.translation_filter.cv.x[3:].copy()
         self._velocity = (omega, velocity)
         return Pose.from_matrix(rotation, translation), covariance
+
+    def _spike(self, pose: Pose) -> bool:
+        """Is this output an orientation jump in place: more than ``flip_angle_deg`` from the last
+        frame's output on the same branch while the position moved less than ``spike_translation_m``
+        (no hand turns a marker that fast about its own centre: a measurement that jumped, from blur or
+        a bad corner)? Such an output is held back for one frame, never two: if the next frame keeps
+        the new orientation, it is taken."""
+        previous, held = self._output, self._held_spike
+        self._held_spike = False
+        if previous is None or held:
+            return False
+        jumped = angle_between_deg(previous.rotation, pose.rotation) > self.config.flip_angle_deg
+        in_place = float(np.linalg.norm(previous.tvec - pose.tvec)) < self.config.spike_translation_m
+        self._held_spike = jumped and in_place
+        return self._held_spike
+
+    def _undecided_other(self, assigned: list[PoseHypothesis | None]) -> int | None:
+        """The other branch, when this uncommitted frame's output should be halfway between the two:
+        nothing in this frame or the recent evidence chooses (no decisive or leaning frame), and the two
+        solutions are within twice ``flip_angle_deg`` of each other, so halfway is within a flip's
+        worth of the truth whichever is right (a fronto-parallel marker: the steady, unbiased answer)."""
+        if self.committed is not None or None in assigned or self.branches is None or None in self.branches:
+            return None
+        if self._leaning:
+            return None
+        a, b = assigned  # type: ignore[misc]
+        if angle_between_deg(a.pose.rotation, b.pose.rotation) > 2.0 * self.config.flip_angle_deg:
+            return None
+        return 1 - self.output_branch
+
+    def _held(self, index: int, assigned: list[PoseHypothesis | None], camera: CameraModel, k: float) -> np.ndarray:
+        """Branch ``index``'s smoothed rotation held within ``k`` sigma of its measurement this frame."""
+        branch, hypothesis = self.branches[index], assigned[index]  # type: ignore[index]
+        assert branch is not None and hypothesis is not None
+        cov_rot, _ = self._covariance(hypothesis.pose, camera)
+        error = so3_log(hypothesis.pose.rotation.T @ branch.smoother.rotation)
+        return hypothesis.pose.rotation @ so3_exp(_within(error, cov_rot, k))
 
     def _still(self, measured: Pose, cov_rot: np.ndarray, cov_t: np.ndarray) -> bool:
         """Has the output branch's measurement stayed put, within its noise, for ``still_s``? (The
@@ -976,6 +1029,11 @@ class TargetTrack:
             hypotheses,
             tuple(events),
         )
+
+
+def _halfway(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rotation halfway between ``a`` and ``b`` on the geodesic."""
+    return a @ so3_exp(0.5 * so3_log(a.T @ b))
 
 
 def _within(error: np.ndarray, covariance: np.ndarray, sigmas: float) -> np.ndarray:

@@ -25,10 +25,14 @@ from ar_anchor.layouts import layout_from_mapping
 
 # ../shared/tools/rigid_sheet.py: beside $AR_ANCHOR_REALDATA when set, else beside the repository
 RIGID_SHEET = (
-    Path(os.environ["AR_ANCHOR_REALDATA"]).parent
-    if os.environ.get("AR_ANCHOR_REALDATA")
-    else Path(__file__).resolve().parents[1].parent / "shared"
-) / "tools" / "rigid_sheet.py"
+    (
+        Path(os.environ["AR_ANCHOR_REALDATA"]).parent
+        if os.environ.get("AR_ANCHOR_REALDATA")
+        else Path(__file__).resolve().parents[1].parent / "shared"
+    )
+    / "tools"
+    / "rigid_sheet.py"
+)
 SCORE_KEYS = ("pair_frames", "flip_pct", "rel_rot_rms_deg", "rel_trans_rms_mm", "marker_frames")
 LENGTH_M = 0.04
 # marker id -> centre on the sheet (metres), x right, y up

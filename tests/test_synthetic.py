@@ -221,8 +221,9 @@ def test_handheld_without_turns_sways_slowly_and_trembles_fast():
 def test_handheld_motion_is_a_function_of_time_not_of_the_frame_rate():
     markers, _ = marker_sheet((0, 1))
     trajectory = Trajectory(kind="handheld", near_m=0.5, far_m=0.8, seed=2)
-    slow = SyntheticSource(SyntheticScene(camera=webcam_camera(160, 120), markers=markers, trajectory=trajectory, fps=15))
-    fast = SyntheticSource(SyntheticScene(camera=webcam_camera(160, 120), markers=markers, trajectory=trajectory, fps=60))
+    camera = webcam_camera(160, 120)
+    slow = SyntheticSource(SyntheticScene(camera=camera, markers=markers, trajectory=trajectory, fps=15))
+    fast = SyntheticSource(SyntheticScene(camera=camera, markers=markers, trajectory=trajectory, fps=60))
     for k in (0, 7, 40):
         a, b = slow.camera_from_world(k), fast.camera_from_world(4 * k)
         np.testing.assert_allclose(a.as_homogeneous(), b.as_homogeneous(), atol=1e-12)
@@ -237,8 +238,9 @@ def edge_width_px(image: np.ndarray) -> float:
 def test_motion_blur_averages_sub_frames_along_the_motion():
     # given a head-on marker and a hand-held camera that turns quickly (200 deg/s at the peak)
     camera = webcam_camera(320, 240)
-    trajectory = Trajectory(kind="handheld", near_m=0.4, far_m=0.4, azimuth_deg=0.0, elevation_deg=0.0, roll_deg=0.0,
-                            tremor_deg=0.0, turn_peak_deg_s=200.0, turn_deg=6.0, turn_every_s=1.0, aim_m=0.0, seed=2)  # fmt: skip
+    trajectory = Trajectory(kind="handheld", near_m=0.4, far_m=0.4, azimuth_deg=0.0, elevation_deg=0.0,
+                            roll_deg=0.0, tremor_deg=0.0, turn_peak_deg_s=200.0, turn_deg=6.0, turn_every_s=1.0,
+                            aim_m=0.0, seed=2)  # fmt: skip
     speeds, _ = angular_speeds(trajectory, 1.0, dt=0.01)
     fastest = int(np.argmax(speeds))  # a frame index at 100 fps
     base = dict(camera=camera, markers=(PlacedMarker(0, 0.08, Pose.identity()),), trajectory=trajectory, frames=100,
@@ -325,8 +327,8 @@ def test_marker_sheet_truth_is_one_rigid_sheet():
     np.testing.assert_allclose(centres[:, 0], [-0.07, 0, 0.07] * 2, atol=1e-12)
     np.testing.assert_allclose(centres[:, 1], [0.035] * 3 + [-0.035] * 3, atol=1e-12)
     # and every frame's truth is rigid: the markers share one rotation and keep their spacing
-    scene = SyntheticScene(camera=webcam_camera(640, 480), markers=markers, frames=1,
-                           trajectory=Trajectory(kind="static", near_m=0.5, azimuth_deg=15.0, look_at=(0.02, -0.01, 0)))  # fmt: skip
+    static = Trajectory(kind="static", near_m=0.5, azimuth_deg=15.0, look_at=(0.02, -0.01, 0))
+    scene = SyntheticScene(camera=webcam_camera(640, 480), markers=markers, frames=1, trajectory=static)
     frame = SyntheticSource(scene).frame(0)
     truth = [frame.truth[m.target] for m in markers]
     for pose in truth[1:]:

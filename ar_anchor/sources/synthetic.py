@@ -308,9 +308,7 @@ class Trajectory:
         )
         direction = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
         pose = look_at(aim + dist * direction, aim, up=(0.0, 1.0, 0.0))
-        tremor = math.radians(self.tremor_deg) * np.array(
-            [self._sines(terms[f"tremor_{axis}"], t_s) for axis in "xyz"]
-        )
+        tremor = math.radians(self.tremor_deg) * np.array([self._sines(terms[f"tremor_{axis}"], t_s) for axis in "xyz"])
         about_centre = np.array([0.0, 0.0, roll]) + tremor + self._turn(t_s)
         # rotations about the camera's own centre: applied in the camera frame, translation-free
         return Pose(about_centre, np.zeros(3)).compose(pose)
