@@ -321,7 +321,7 @@ class ScenarioRun:
     track_ms: list[float] = field(default_factory=list)
     render_s: float = 0.0
     track_s: float = 0.0
-    full_frame_found: int = 0  # marker-frames a full-frame search finds on the same frames ...
+    full_frame_found: int = 0  # marker-frames of tracked ids a full-frame search finds on the same frames ...
     roi_missed: int = 0  # ... and how many of those the tracker (ROI tracking on) did not find
 
     def _first(self) -> TargetSeries:
@@ -388,7 +388,7 @@ def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel)
         truth = frame.truth or {}
         for name, series in run.targets.items():
             series.append(result.targets.get(name), truth.get(name))
-        everywhere = set(full_frame.detect(frame.image, camera).ids.tolist())
+        everywhere = {i for i in full_frame.detect(frame.image, camera).ids.tolist() if tracker.config.tracks_marker(i)}
         run.full_frame_found += len(everywhere)
         run.roi_missed += len(everywhere - set(result.detections.ids.tolist()))
     # targets never in view have nothing to score
@@ -460,6 +460,21 @@ def predicted_error_stats(
     }
 
 
+def ambiguous_vs_raw(
+    output: Sequence[Pose | None], raw: Sequence[Pose | None], truth: Sequence[Pose | None], state: Sequence[str]
+) -> dict[str, Any]:
+    """On the ``ambiguous`` rows that have a raw measurement: how many frames the output and the raw
+    per-frame pick are each more than 10 deg off (the output must be at least as good)."""
+    out = raw_wrong = rows = 0
+    for pose, measured, true, st in zip(output, raw, truth, state):
+        if st != "ambiguous" or pose is None or measured is None or true is None:
+            continue
+        rows += 1
+        out += angle_between_deg(pose.rotation, true.rotation) > FLIP_DEG
+        raw_wrong += angle_between_deg(measured.rotation, true.rotation) > FLIP_DEG
+    return {"ambiguous_rows": rows, "ambiguous_wrong": out, "ambiguous_raw_wrong": raw_wrong}
+
+
 def _twitches(poses: Sequence[Pose | None]) -> int:
     return sum(
         1
@@ -516,6 +531,7 @@ def _target_metrics(series: TargetSeries, moving: bool) -> dict[str, Any]:
     trk["ignored_run"] = longest_stretch(series.output, series.raw, series.decisive, gaps_end=False)
     trk.update(wrong_tracked(series.output, series.truth, series.state))
     trk.update(predicted_error_stats(series.output, series.truth, series.state))
+    trk.update(ambiguous_vs_raw(series.output, series.raw, series.truth, series.state))
     states = [s for s in series.state if s]
     first_output = next((i for i, s in enumerate(series.state) if s), None)
     first_tracked = next((i for i, s in enumerate(series.state) if s == "tracked"), None)
@@ -558,7 +574,7 @@ def _pooled(run: ScenarioRun, per_target: dict[str, dict[str, Any]]) -> dict[str
                 }
             )
         rows = [m[pipeline] for m in per_target.values()]
-        for key in ("twitches", "decisive_wrong", "wrong_tracked"):
+        for key in ("twitches", "decisive_wrong", "wrong_tracked", "ambiguous_wrong", "ambiguous_raw_wrong"):
             if key in rows[0]:
                 out[key] = int(sum(r.get(key, 0) for r in rows))
         for key in ("longest_stretch", "ignored_run", "lag_frames", "frames_to_commit"):
@@ -657,6 +673,14 @@ def acceptance(result: dict[str, Any]) -> dict[str, Any]:
             count = f", {len(bad)} of {len(targets)} targets)" if len(targets) > 1 else ")"
             where = f" ({name}{count}" if name else ""
             failed.append(text.format(value) + where)
+    for name, m in targets.items():  # ambiguous rows at least as good as the raw per-frame pick
+        trk = m["tracker"]
+        if trk.get("ambiguous_wrong", 0) > trk.get("ambiguous_raw_wrong", 0):
+            failed.append(
+                f"ambiguous rows {trk['ambiguous_wrong']} wrong vs raw {trk['ambiguous_raw_wrong']}"
+                + (f" ({name})" if name else "")
+            )
+            break
     if result.get("roi_missed"):  # ROI tracking may never find fewer markers than full-frame detection
         failed.append(f"ROI tracking missed {result['roi_missed']} marker-frames full-frame detection found")
     return {"pass": not failed, "failed": failed}
@@ -835,9 +859,10 @@ def acceptance_table(results: list[dict[str, Any]]) -> str:
     header = (
         "| scenario | targets | wrong % raw / trk | worst target wrong % raw / trk | wrong tracked n (%) "
         "| twitches raw / trk | longest stretch (gap-tolerant) | decisive % (wrong n) | predicted n, med / p95 deg "
-        "| sheet disagree % raw / trk | found by full frame / missed with ROI | pass |"
+        "| ambiguous rows wrong trk / raw | sheet disagree % raw / trk | found by full frame / missed with ROI "
+        "| pass |"
     )
-    lines = [header, "|" + "|".join(["---"] * 12) + "|"]
+    lines = [header, "|" + "|".join(["---"] * 13) + "|"]
     for r in results:
         raw, trk, worst = r["raw"], r["tracker"], r.get("worst", {})
         targets = r.get("targets") or {}
@@ -863,7 +888,8 @@ def acceptance_table(results: list[dict[str, Any]]) -> str:
             f"| {_fmt(trk.get('longest_stretch'), 0)} ({_fmt(trk.get('ignored_run'), 0)}) "
             f"| {_fmt(raw.get('decisive_pct'), 0)} ({_fmt(raw.get('decisive_wrong'), 0)}) "
             f"| {_fmt(trk.get('predicted_frames'), 0)}, {_fmt(trk.get('predicted_median_deg'), 1)} / "
-            f"{_fmt(trk.get('predicted_p95_deg'), 1)} | {sheet_cell} "
+            f"{_fmt(trk.get('predicted_p95_deg'), 1)} "
+            f"| {_fmt(trk.get('ambiguous_wrong'), 0)} / {_fmt(trk.get('ambiguous_raw_wrong'), 0)} | {sheet_cell} "
             f"| {_fmt(r.get('full_frame_found'), 0)} / {_fmt(r.get('roi_missed'), 0)} | {pass_cell} |"
         )
     return "\n".join(lines)
@@ -928,8 +954,11 @@ def write_stability_report(
         "*longest stretch*: consecutive frames whose output is > 10 deg from a decisive raw measurement (the only "
         f"valid IPPE solution, or the other reprojects >= {DECISIVE_RATIO:g}x and >= {DECISIVE_MARGIN_PX:g} px "
         "worse); in brackets the gap-tolerant run (frames without a decisive measurement skipped). *decisive %*: "
-        "frames whose raw measurement is decisive, with how many of those are themselves wrong. *sheet disagree*: "
-        "frames where two markers of the rigid sheet are > 10 deg apart.",
+        "frames whose raw measurement is decisive, with how many of those are themselves wrong. *ambiguous rows*: "
+        "frames output as `ambiguous` more than 10 deg off, for the output and for the raw pick on the same rows "
+        "(the output must be at least as good). *sheet disagree*: frames where two markers of the rigid sheet are "
+        "> 10 deg apart. *found by full frame / missed with ROI*: marker-frames a full-frame search finds on the "
+        "same frames, and how many of those ROI tracking (on by default) did not find (must be 0).",
         "",
         acceptance_table(handheld + calm),
         "",

@@ -480,16 +480,19 @@ class TargetTrack:
         self.evidence: collections.deque[tuple[int, float]] = collections.deque()  # (timestamp_ns, px)
         self.translation_filter: TranslationFilter | None = None
         self.last_ns: int | None = None  # the last frame seen (measured or not)
+        self._period_s: float | None = None  # the frame interval (the shortest recent one, smoothed)
         self.measured_ns: int | None = None  # the last frame measured
         self.sigma_px = config.corner_noise_px
         self._frame_sigma = config.corner_noise_px
         self.against = 0.0  # contradicting frames in a row (a decisive one counts 1, a leaning one 1/3)
         self.run = 0  # ... and how many frames that run has: from its second, the output is the frame's pick
         self.doubtful = False  # this frame's assignment of solutions to branches is in doubt
+        self.unclear = False  # ... or the tilt could not tell the (far apart) solutions apart this frame
         self.unconfirmed = False  # re-acquired after a gap, no frame has confirmed the commitment yet
         self.outlier = False  # this frame's residual is far above the track's usual one
         self._leaning = False  # an undecided target's frame or recent evidence chose its output branch
         self._held_spike = False  # the last frame's output jump was held back (see _spike)
+        self._was_tracked = False  # the last measured frame's state was tracked
         self._usual_px: float | None = None
         self.frames = 0
         self._output: Pose | None = None  # the last published measured output
@@ -621,6 +624,9 @@ class TargetTrack:
         """
         if self.last_ns is not None and timestamp_ns <= self.last_ns:
             timestamp_ns = self.last_ns + 1  # a repeated or backward timestamp: no time has passed
+        elif self.last_ns is not None:  # the frame interval (a slow frame rate is not a gap)
+            step = (timestamp_ns - self.last_ns) * 1e-9
+            self._period_s = step if self._period_s is None else min(step, 0.8 * self._period_s + 0.2 * step)
         self.last_ns = timestamp_ns
         events: list[TrackEvent] = []
         self._covariances.clear()
@@ -631,13 +637,13 @@ class TargetTrack:
         gap_s = math.inf if self.measured_ns is None else (timestamp_ns - self.measured_ns) * 1e-9
         self.measured_ns = timestamp_ns
         self.frames += 1
-        self.doubtful = False
-        restart_frame = self.branches is None or gap_s > self.config.restart_gap_s
+        self.doubtful = self.unclear = False
+        restart_frame = self.branches is None or self._is_gap(gap_s)
         if self.branches is None:
             assigned = self._start(measurement, camera)
             events.append(TrackEvent("start", "track started"))
         else:
-            restart = gap_s > self.config.restart_gap_s
+            restart = self._is_gap(gap_s)
             if restart:
                 events.append(TrackEvent("reacquired", f"seen again after {gap_s:.2f} s"))
                 self.unconfirmed = True  # which solution is which was carried over the gap: the frame's
@@ -699,6 +705,8 @@ class TargetTrack:
             and decisive in (None, self.output_branch)
             and self.against == 0
             and not self.doubtful
+            and not (self.unclear and decisive is None)
+            and not self._close_call(assigned)
             and not self.unconfirmed
             and not self.outlier
             and not blurred
@@ -709,9 +717,16 @@ class TargetTrack:
             assigned[0].pose if assigned[0] is not None else None,
             assigned[1].pose if assigned[1] is not None else None,
         )
+        self._was_tracked = vouched
         update = self._result("tracked" if vouched else "ambiguous", pose, hypotheses, events)
         self._output = pose
         return update
+
+    def _is_gap(self, gap_s: float) -> bool:
+        """Were frames missed for longer than ``restart_gap_s``? (At 5 fps every frame is 0.2 s after the
+        last one: that is the frame rate, not a gap; a gap is more than one and a half frame intervals.)"""
+        period = self._period_s or 0.0
+        return gap_s > self.config.restart_gap_s and gap_s > 1.5 * period
 
     def _start(self, measurement: MarkerPose | BoardPose, camera: CameraModel) -> list[PoseHypothesis | None]:
         cfg = self.config
@@ -767,6 +782,9 @@ class TargetTrack:
             self.tilts.predict(gap_s)
         second = tilt_of(hypotheses[1].pose) if len(hypotheses) > 1 else None
         is_branch0, clear = self.tilts.choose(tilt_of(first.pose), second, sigma, 0.0 if restart else gap_s)
+        self.unclear = not clear and len(hypotheses) == 2 and (
+            angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
+        )
         assigned: list[PoseHypothesis | None] = [None, None]
         if len(hypotheses) == 1:
             assigned[0 if is_branch0 else 1] = first
@@ -930,6 +948,18 @@ class TargetTrack:
         self._held_spike = jumped and in_place
         return self._held_spike
 
+    def _close_call(self, assigned: list[PoseHypothesis | None]) -> bool:
+        """Are the two solutions within twice ``flip_angle_deg`` of each other while this frame barely
+        tells them apart (their errors differ by less than the decision margin)? Then noise alone can
+        carry the pose past a flip's worth: not vouched for, however sure the commitment."""
+        if None in assigned:
+            return False
+        a, b = assigned  # type: ignore[misc]
+        margin = self.config.decide_margin_px * self._margin_scale()
+        return abs(a.reproj_px - b.reproj_px) < margin and (
+            angle_between_deg(a.pose.rotation, b.pose.rotation) <= 2.0 * self.config.flip_angle_deg
+        )
+
     def _undecided_other(self, assigned: list[PoseHypothesis | None]) -> int | None:
         """The other branch, when this uncommitted frame's output should be halfway between the two:
         nothing in this frame or the recent evidence chooses (no decisive or leaning frame), and the two
@@ -991,8 +1021,8 @@ class TargetTrack:
             self.branches = None
             events.append(TrackEvent("reset", f"lost for more than {cfg.memory_s:g} s: reset"))
             return None
-        if gap_s > cfg.predict_s or self._output is None or blurred:
-            return None
+        if gap_s > cfg.predict_s or self._output is None or blurred or not self._was_tracked:
+            return None  # (an undecided target is not predicted: which pose to continue is not known)
         tau = cfg.predict_damping_s
         reach = tau * (1.0 - math.exp(-gap_s / tau))  # integral of exp(-t / tau) over the gap
         omega, velocity = self._velocity

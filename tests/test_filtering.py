@@ -193,14 +193,16 @@ def test_track_never_commits_below_the_bias_margin(camera):
 
 
 def test_track_predicts_through_a_gap_then_resets(camera):
-    truth = Pose.from_matrix(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0])
+    # a tracked (committed, vouched for) still marker: only such a target is predicted
+    truth = Pose.from_matrix(matrix_from_rvec(np.array([0.3, 0.2, 0.0])) @ np.diag([1.0, -1.0, -1.0]), [0, 0, 0.5])
     config = FilterConfig(predict_s=0.1, memory_s=0.2)
     track = TargetTrack(config, marker_corners_in_marker(0.05))
-    for k in range(5):
-        track.update(hypotheses_for(truth, flipped(truth), camera, 0.1, 1.0), int(k * DT * 1e9), camera)
+    for k in range(15):
+        update = track.update(hypotheses_for(truth, mirrored(truth), camera, 0.02, 1.0), int(k * DT * 1e9), camera)
+    assert update.state == "tracked"
     states, alive = [], []
     for k in range(7):
-        states.append(track.update(None, int((5 + k) * DT * 1e9), camera))
+        states.append(track.update(None, int((15 + k) * DT * 1e9), camera))
         alive.append(track.alive)
     # a still target is predicted for predict_s (3 frames at 30 fps) ...
     assert [s.state for s in states[:3]] == ["predicted"] * 3

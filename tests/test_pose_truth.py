@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import cv2
 import numpy as np
 
 from ar_anchor.camera import CameraModel
@@ -208,3 +209,51 @@ def test_a_repeated_frame_is_no_new_evidence():
     assert tracker.tracks["marker:0"].frames == frames_seen
     assert again.targets["marker:0"].pose is first.targets["marker:0"].pose
     assert not tracker.process(source.frame(2)).repeated
+
+
+def test_a_slow_frame_rate_is_not_a_gap():
+    # given a marker measured in every frame of a 5 fps video (0.2 s apart: longer than restart_gap_s)
+    track = TargetTrack(FilterConfig(), marker_corners_in_marker(0.05))
+    events = []
+    for k in range(10):
+        update = track.update(measurement(tilted(20 + k, 10)), k * 200_000_000, CAMERA)
+        events += [e.kind for e in update.events]
+    # then no frame is taken for a re-acquisition after a gap: the smoothers and the association go on
+    assert "reacquired" not in events
+    assert update.state == "tracked"
+    # while a real gap (three frames missed) is one
+    for k in range(10, 13):
+        track.update(None, k * 200_000_000, CAMERA)
+    update = track.update(measurement(tilted(30, 10)), 13 * 200_000_000, CAMERA)
+    assert "reacquired" in [e.kind for e in update.events]
+
+
+def test_a_motion_blurred_frame_is_not_predicted_through():
+    # given two markers tracked, and then a frame smeared by a quick turn in which they are lost
+    trajectory = Trajectory(kind="static", near_m=0.5, look_at=(0.05, 0.0, 0.0))
+    one = PlacedMarker(0, 0.05, Pose(np.zeros(3), np.array([-0.06, 0.0, 0.0])))
+    two = PlacedMarker(1, 0.05, Pose(np.zeros(3), np.array([0.16, 0.03, 0.0])))
+    source = SyntheticSource(
+        SyntheticScene(camera=CAMERA, markers=(one, two), trajectory=trajectory, frames=12, noise_sigma=1.0)
+    )
+    tracker = Tracker(lone_config(), CAMERA)
+    for index in range(10):
+        result = tracker.process(source.frame(index))
+    assert {"marker:0", "marker:1"} <= set(result.targets)
+    image = source.frame(10).image
+    kernel = np.zeros((1, 61), np.float32)
+    kernel[0, :] = 1.0 / 61  # 61 px of horizontal motion blur
+    smeared = Frame(cv2.filter2D(image, -1, kernel), 10, 10 * DT_NS)
+    result = tracker.process(smeared)
+    # then nothing is published for them (their motion is unknown), though their tracks are kept
+    assert not result.targets, {n: t.state for n, t in result.targets.items()}
+    assert tracker.tracks["marker:0"].alive
+    # and a marker of a sharp frame with a dropout is predicted
+    tracker = Tracker(lone_config(), CAMERA)
+    for index in range(10):
+        tracker.process(source.frame(index))
+    alone = SyntheticSource(
+        SyntheticScene(camera=CAMERA, markers=(one,), trajectory=trajectory, frames=12, noise_sigma=1.0)
+    )
+    result = tracker.process(alone.frame(10))
+    assert result.targets["marker:1"].state == "predicted"
