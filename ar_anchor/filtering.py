@@ -58,6 +58,7 @@ from .pose import BoardPose, MarkerPose, PoseHypothesis
 
 __all__ = [
     "RotationFilter",
+    "decisive",
     "TargetTrack",
     "TrackEvent",
     "TrackUpdate",
@@ -468,7 +469,8 @@ class TargetTrack:
     """The filter state of one target (see the module doc)."""
 
     _RECENT_S = 0.3  # the best guess of an undecided target leans on this much recent evidence
-    _OUTLIER_RATIO = 2.5  # a frame with this many times the usual residual is not vouched for
+    _OUTLIER_RATIO = 2.5  # a frame with this many times the usual residual is not vouched for ...
+    _OUTLIER_MIN_PX = 0.15  # ... if that residual is above this (below it, a fit is good by any standard)
 
     def __init__(self, config: FilterConfig, points_in_target: np.ndarray) -> None:
         self.config = config
@@ -499,6 +501,7 @@ class TargetTrack:
         self._velocity: tuple[np.ndarray, np.ndarray] = (np.zeros(3), np.zeros(3))  # omega (body), v (camera)
         self._was_still = False  # the output branch's measurements stayed put for still_s (see _still)
         self._settled_deg = math.inf  # ... turning this much over it
+        self._rates: collections.deque[tuple[int, float]] = collections.deque()  # (ns, rad/s) over still_s
         self._rate = math.inf  # last measured rate of change (turn + shift / distance), rad/s
         self._history: collections.deque[tuple[int, int, Pose]] = collections.deque()  # (branch, ns, measured)
         self._covariances: dict[int, tuple[Pose, tuple[np.ndarray, np.ndarray]]] = {}  # this frame's, by pose
@@ -580,8 +583,7 @@ class TargetTrack:
             return only, only
         low, high = sorted((0, 1), key=lambda i: assigned[i].reproj_px)  # type: ignore[union-attr]
         better, worse = assigned[low].reproj_px, assigned[high].reproj_px  # type: ignore[union-attr]
-        floor = max(cfg.decisive_px * self._margin_scale(), cfg.decisive_sigmas * self._frame_sigma)
-        strong = low if worse - better >= floor and worse >= cfg.decisive_ratio * better else None
+        strong = low if decisive(better, worse, cfg, self._frame_sigma, self._margin_scale()) else None
         lean = low if worse - better > cfg.decide_margin_px * self._margin_scale() and worse >= 2.0 * better else None
         return strong, lean
 
@@ -782,8 +784,12 @@ class TargetTrack:
             self.tilts.predict(gap_s)
         second = tilt_of(hypotheses[1].pose) if len(hypotheses) > 1 else None
         is_branch0, clear = self.tilts.choose(tilt_of(first.pose), second, sigma, 0.0 if restart else gap_s)
-        self.unclear = not clear and len(hypotheses) == 2 and (
-            angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
+        self.unclear = (
+            not clear
+            and len(hypotheses) == 2
+            and (
+                angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
+            )
         )
         assigned: list[PoseHypothesis | None] = [None, None]
         if len(hypotheses) == 1:
@@ -849,11 +855,16 @@ class TargetTrack:
     def _update_noise(self, measurement: MarkerPose | BoardPose) -> None:
         """The corner noise: a slow estimate from the residuals, and this frame's own (a blurred frame's
         residuals are larger): its measurement is trusted by the larger of the two. A frame whose residual
-        is ``_OUTLIER_RATIO`` times the track's usual one (motion blur, rolling shutter, a partly hidden
-        marker) may be off by more than its noise says: it is not vouched for."""
+        is ``_OUTLIER_RATIO`` times the track's usual one and above ``_OUTLIER_MIN_PX`` (motion blur,
+        rolling shutter, a partly hidden marker) may be off by more than its noise says: it is not
+        vouched for."""
         estimate = measurement.best.reproj_px * _RESIDUAL_TO_SIGMA
         usual = self._usual_px
-        self.outlier = usual is not None and estimate > self._OUTLIER_RATIO * max(usual, self.config.corner_noise_px)
+        self.outlier = (
+            usual is not None
+            and estimate > self._OUTLIER_RATIO * max(usual, self.config.corner_noise_px)
+            and measurement.best.reproj_px > self._OUTLIER_MIN_PX
+        )
         if not self.outlier:  # the usual residual, slowly, from the frames that are not outliers
             self._usual_px = estimate if usual is None else 0.95 * usual + 0.05 * estimate
         self.sigma_px = max(self.config.corner_noise_px, 0.9 * self.sigma_px + 0.1 * estimate)
@@ -994,9 +1005,13 @@ class TargetTrack:
             dt = max((self.measured_ns - last_ns) * 1e-9, 1e-3)
             turn = float(np.linalg.norm(so3_log(last.rotation.T @ measured.rotation)))
             shift = float(np.linalg.norm(measured.tvec - last.tvec)) / max(float(np.linalg.norm(measured.tvec)), 1e-6)
-            self._rate = (turn + shift) / dt
-        history.append((self.output_branch, self.measured_ns, measured))
+            self._rates.append((self.measured_ns, (turn + shift) / dt))
         horizon = self.measured_ns - int(self.config.still_s * 1e9)
+        while self._rates and self._rates[0][0] < horizon:
+            self._rates.popleft()
+        # the fastest over the last still_s: one slow step (a repeated frame) says little
+        self._rate = max((rate for _, rate in self._rates), default=math.inf)
+        history.append((self.output_branch, self.measured_ns, measured))
         while len(history) > 1 and history[1][1] <= horizon:
             history.popleft()
         _, then_ns, then = history[0]
@@ -1004,7 +1019,8 @@ class TargetTrack:
             return False  # not seen long enough to tell
         turned = so3_log(then.rotation.T @ measured.rotation)
         moved = measured.tvec - then.tvec
-        self._settled_deg = math.degrees(float(np.linalg.norm(turned)))
+        shift = float(np.linalg.norm(moved)) / max(float(np.linalg.norm(measured.tvec)), 1e-6)
+        self._settled_deg = math.degrees(float(np.linalg.norm(turned)) + shift)  # turn + shift seen from the camera
         return bool(
             turned @ np.linalg.solve(2.0 * cov_rot, turned) < 9.0 and moved @ np.linalg.solve(2.0 * cov_t, moved) < 9.0
         )
@@ -1059,6 +1075,15 @@ class TargetTrack:
             hypotheses,
             tuple(events),
         )
+
+
+def decisive(better_px: float, worse_px: float, config: FilterConfig, sigma_px: float, scale: float = 1.0) -> bool:
+    """Does one frame alone decide between two solutions with these RMS reprojection errors: the worse
+    one ``decisive_ratio`` times the better's and worse by ``decisive_sigmas`` corner-noise standard
+    deviations ``sigma_px``, and at least by ``decisive_px`` (times ``scale``: a board's margin shrinks
+    with its number of points)?"""
+    floor = max(config.decisive_px * scale, config.decisive_sigmas * sigma_px)
+    return worse_px - better_px >= floor and worse_px >= config.decisive_ratio * better_px
 
 
 def _halfway(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -3,7 +3,8 @@
 With the filter on (the default), each marker's output pose comes from its
 :class:`~ar_anchor.filtering.TargetTrack` (flip resolved with evidence over time, smoothed,
 predicted through short gaps). With it off (``--no-filter``), the output is the plain per-frame
-lower-error IPPE solution, state ``tracked``.
+lower-error IPPE solution, state ``tracked`` where the frame alone decides the planar flip and
+``ambiguous`` where it does not.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 from .camera import CameraModel
 from .config import TrackerConfig
 from .detection import Detector, MarkerDetections, plan_regions
-from .filtering import TargetTrack
+from .filtering import TargetTrack, decisive
 from .geometry import Pose, marker_corners_in_marker
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 from .sources.base import Frame
@@ -181,13 +182,15 @@ class Tracker:
 
     def process(self, frame: Frame) -> FrameResult:
         fingerprint = np.ascontiguousarray(frame.image[::4, ::4])
-        if self._previous is not None and self._repeats(fingerprint):
+        candidate = self._previous is not None and self._repeats(fingerprint)
+        result = self._process(frame, self._blurred(fingerprint), repeat_candidate=candidate)
+        if result.repeated:
             # a repeated frame (a 30 fps container carrying 12 fps content): the same content is no new
             # evidence; the last answer stands, with this frame's index and time
-            return self._repeat(frame)
+            return result
         self._fingerprint = fingerprint
-        self._previous = self._process(frame, self._blurred(fingerprint))
-        return self._previous
+        self._previous = result
+        return result
 
     def _blurred(self, fingerprint: np.ndarray) -> bool:
         """Is this frame motion-blurred (a quick turn), not merely missing a marker? Sharpness is the
@@ -207,9 +210,10 @@ class Tracker:
         return blurred
 
     def _repeats(self, fingerprint: np.ndarray) -> bool:
-        """Is this the last tracked frame's content again: every 4th pixel the same to within
+        """Might this be the last tracked frame's content again: every 4th pixel the same to within
         ``[filter] repeat_grey`` grey levels on average (a repeated frame re-encoded by a lossy codec is
-        not bit-identical)?"""
+        not bit-identical)? It is a repeat only if it also shows the same markers at the same corners
+        (``_REPEAT_PX``): a slowly moving real video differs as little in its pixels, but not there."""
         previous = self._fingerprint
         if previous is None or previous.shape != fingerprint.shape:
             return False
@@ -230,10 +234,12 @@ class Tracker:
             repeated=True,
         )
 
-    def _process(self, frame: Frame, blurred: bool = False) -> FrameResult:
+    def _process(self, frame: Frame, blurred: bool = False, repeat_candidate: bool = False) -> FrameResult:
         camera = self.camera_for(frame.size)
         t0 = time.perf_counter()
         detections = self._detect(frame.image, camera, frame.timestamp_ns)
+        if repeat_candidate and self._previous is not None and _same_corners(detections, self._previous.detections):
+            return self._repeat(frame)
         if self.config.pose.recover_markers:
             for solver in self.board_solvers:
                 detections = self.detector.recover(
@@ -299,8 +305,18 @@ class Tracker:
         return targets
 
     def _raw_result(self, name: str, solved: MarkerPose | BoardPose, camera: CameraModel) -> TargetResult:
-        """``--no-filter``: the lower-error solution as it is, state ``tracked``."""
-        return self._result(name, "tracked", solved.best.pose, solved, camera)
+        """``--no-filter``: the lower-error solution as it is; ``tracked`` only when this frame alone
+        decides the planar flip (one valid solution, or the other far worse: see
+        :func:`~ar_anchor.filtering.decisive`), else ``ambiguous``."""
+        hypotheses = solved.hypotheses
+        sure = len(hypotheses) == 1 or decisive(
+            hypotheses[0].reproj_px,
+            hypotheses[1].reproj_px,
+            self.config.filter,
+            max(self.config.filter.corner_noise_px, hypotheses[0].reproj_px * math.sqrt(2.0)),
+            min(1.0, math.sqrt(4.0 / max(len(solved.points_in_target), 4))),
+        )
+        return self._result(name, "tracked" if sure else "ambiguous", solved.best.pose, solved, camera)
 
     def _result(
         self, name: str, state: str, pose: Pose, solved: MarkerPose | BoardPose | None, camera: CameraModel, **extra
@@ -345,6 +361,20 @@ class Tracker:
         self.tracks.clear()
         self._previous = self._fingerprint = None
         self._sharpness = None
+
+
+_REPEAT_PX = 0.25  # corners that moved less than this (every one) are a repeated frame's
+
+
+def _same_corners(now: MarkerDetections, before: MarkerDetections) -> bool:
+    """Does every marker found now sit where it was found before (each corner within ``_REPEAT_PX``)?
+    (A marker the repeat lost to compression noise changes nothing; one found only now does.)"""
+    if len(now.ids) == 0:
+        return False
+    where = {int(i): c for i, c in zip(before.ids, before.corners)}
+    return all(
+        int(i) in where and float(np.abs(c - where[int(i)]).max()) < _REPEAT_PX for i, c in zip(now.ids, now.corners)
+    )
 
 
 def _target_order(name: str) -> tuple[str, int, str]:

@@ -311,9 +311,16 @@ def test_no_filter_is_the_raw_pipeline(camera):
     raw_config = dataclasses.replace(config, filter=dataclasses.replace(config.filter, enabled=False))
     source = SyntheticSource(demo_scene(config, camera, frames=3))
     tracker = Tracker(raw_config, camera)
+    states = set()
     for frame in source:
         for target in tracker.process(frame).targets.values():
-            assert target.state == "tracked" and target.pose is target.raw
+            # the lower-error solution as it is, called tracked only where the frame alone decides
+            assert target.pose is target.raw and target.state in ("tracked", "ambiguous")
+            hyps = target.hypotheses
+            if len(hyps) == 2 and hyps[1].reproj_px < 1.5 * hyps[0].reproj_px:
+                assert target.state == "ambiguous"
+            states.add(target.state)
+    assert "tracked" in states
 
 
 @pytest.mark.parametrize("key", ["evidence_window_s", "decide_margin_px", "predict_s", "memory_s"])
