@@ -469,6 +469,7 @@ class TargetTrack:
     """The filter state of one target (see the module doc)."""
 
     _RECENT_S = 0.3  # the best guess of an undecided target leans on this much recent evidence
+    _STILL_CHI2 = 16.0  # still: each difference within this squared Mahalanobis distance (chi2, 3 dof: 99.9 %)
     _OUTLIER_RATIO = 2.5  # a frame with this many times the usual residual is not vouched for ...
     _OUTLIER_MIN_PX = 0.15  # ... if that residual is above this (below it, a fit is good by any standard)
 
@@ -995,7 +996,7 @@ class TargetTrack:
 
     def _still(self, measured: Pose, cov_rot: np.ndarray, cov_t: np.ndarray) -> bool:
         """Has the output branch's measurement stayed put, within its noise, for ``still_s``? (The
-        difference of two measurements has twice a measurement's covariance; 3 sigma.)"""
+        difference of two measurements has twice a measurement's covariance; ``_STILL_CHI2``.)"""
         assert self.measured_ns is not None
         history = self._history
         if history and history[0][0] != self.output_branch:
@@ -1022,7 +1023,8 @@ class TargetTrack:
         shift = float(np.linalg.norm(moved)) / max(float(np.linalg.norm(measured.tvec)), 1e-6)
         self._settled_deg = math.degrees(float(np.linalg.norm(turned)) + shift)  # turn + shift seen from the camera
         return bool(
-            turned @ np.linalg.solve(2.0 * cov_rot, turned) < 9.0 and moved @ np.linalg.solve(2.0 * cov_t, moved) < 9.0
+            turned @ np.linalg.solve(2.0 * cov_rot, turned) < self._STILL_CHI2
+            and moved @ np.linalg.solve(2.0 * cov_t, moved) < self._STILL_CHI2
         )
 
     def _coast(self, timestamp_ns: int, events: list[TrackEvent], blurred: bool = False) -> TrackUpdate | None:
