@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from . import __version__
+from .bench_speed import _jsonable
 from .camera import CameraModel
 from .config import TrackerConfig, dictionary_id
 from .errors import InputError
@@ -141,31 +142,46 @@ def score_rigid_sheet(
     ``pair_frames``, ``flip_pct``, ``rel_rot_rms_deg``, ``rel_trans_rms_mm`` (NaN with nothing to
     score) and ``marker_frames``, as ``rigid_sheet.py``'s ``score``; plus ``flips`` and ``pairs``.
     """
-    rotation_deg: list[float] = []
-    translation_mm: list[float] = []
-    flips = pair_frames = pairs = 0
+    tally = _Tally(flip_deg)
     for _a, _b, relative in _pairs(poses, min_common_frames):
-        pairs += 1
         u, _, vt = np.linalg.svd(sum(m[:3, :3] for m in relative))
-        mean_rotation = u @ vt
-        median_translation = np.median([m[:3, 3] for m in relative], axis=0)
+        reference = np.eye(4)
+        reference[:3, :3] = u @ vt
+        reference[:3, 3] = np.median([m[:3, 3] for m in relative], axis=0)
+        tally.add(reference, relative)
+    return tally.scores(poses)
+
+
+class _Tally:
+    """Pair-frames scored against a reference relative pose per pair: flips and the RMS of the rest."""
+
+    def __init__(self, flip_deg: float) -> None:
+        self.flip_deg = flip_deg
+        self.rotation_deg: list[float] = []
+        self.translation_mm: list[float] = []
+        self.flips = self.pair_frames = self.pairs = 0
+
+    def add(self, reference: np.ndarray, relative: list[np.ndarray]) -> None:
+        self.pairs += 1
         for m in relative:
-            angle = _angle_deg(mean_rotation.T @ m[:3, :3])
-            pair_frames += 1
-            if angle > flip_deg:
-                flips += 1
+            angle = _angle_deg(reference[:3, :3].T @ m[:3, :3])
+            self.pair_frames += 1
+            if angle > self.flip_deg:
+                self.flips += 1
                 continue
-            rotation_deg.append(angle)
-            translation_mm.append(1000 * np.linalg.norm(m[:3, 3] - median_translation))
-    return {
-        "pair_frames": pair_frames,
-        "flip_pct": 100 * flips / max(pair_frames, 1),
-        "rel_rot_rms_deg": _rms(rotation_deg),
-        "rel_trans_rms_mm": _rms(translation_mm),
-        "marker_frames": _marker_frames(poses),
-        "flips": flips,
-        "pairs": pairs,
-    }
+            self.rotation_deg.append(angle)
+            self.translation_mm.append(1000 * np.linalg.norm(m[:3, 3] - reference[:3, 3]))
+
+    def scores(self, poses: PoseTable) -> dict[str, Any]:
+        return {
+            "pair_frames": self.pair_frames,
+            "flip_pct": 100 * self.flips / max(self.pair_frames, 1),
+            "rel_rot_rms_deg": _rms(self.rotation_deg),
+            "rel_trans_rms_mm": _rms(self.translation_mm),
+            "marker_frames": _marker_frames(poses),
+            "flips": self.flips,
+            "pairs": self.pairs,
+        }
 
 
 def layout_relative_poses(layout: Layout) -> dict[int, np.ndarray]:
@@ -200,38 +216,23 @@ def score_against_layout(
     per-frame figures against the layout (an offset of several degrees eats into the 10 deg flip margin).
     """
     board_from = layout_relative_poses(layout)
-    rotation_deg: list[float] = []
-    translation_mm: list[float] = []
+    tally = _Tally(flip_deg)
     offsets_deg: list[float] = []
     ratios: list[float] = []
-    flips = pair_frames = pairs = unknown = 0
+    unknown = 0
     for a, b, relative in _pairs(poses, min_common_frames):
         id_a, id_b = int(a.split(":")[1]), int(b.split(":")[1])
         if id_a not in board_from or id_b not in board_from:
             unknown += 1
             continue
-        pairs += 1
         truth = np.linalg.inv(board_from[id_a]) @ board_from[id_b]
         u, _, vt = np.linalg.svd(sum(m[:3, :3] for m in relative))
         offsets_deg.append(_angle_deg(truth[:3, :3].T @ (u @ vt)))
         printed = float(np.linalg.norm(truth[:3, 3]))
         ratios += [float(np.linalg.norm(m[:3, 3])) / printed for m in relative if printed > 0]
-        for m in relative:
-            angle = _angle_deg(truth[:3, :3].T @ m[:3, :3])
-            pair_frames += 1
-            if angle > flip_deg:
-                flips += 1
-                continue
-            rotation_deg.append(angle)
-            translation_mm.append(1000 * np.linalg.norm(m[:3, 3] - truth[:3, 3]))
+        tally.add(truth, relative)
     return {
-        "pair_frames": pair_frames,
-        "flip_pct": 100 * flips / max(pair_frames, 1),
-        "rel_rot_rms_deg": _rms(rotation_deg),
-        "rel_trans_rms_mm": _rms(translation_mm),
-        "marker_frames": _marker_frames(poses),
-        "flips": flips,
-        "pairs": pairs,
+        **tally.scores(poses),
         "pairs_unknown": unknown,
         "mean_offset_rms_deg": _rms(offsets_deg),
         "distance_ratio": float(np.median(ratios)) if ratios else math.nan,
@@ -636,19 +637,6 @@ def real_summary(results: Mapping[str, Any]) -> str:
         f"{det['plain_not_ours']} found by plain OpenCV only; tracker {_fmt(speed['tracker_fps'], 1)} frames/s"
     )
     return "\n".join(lines)
-
-
-def _jsonable(value: Any) -> Any:
-    """NaN and infinities as null (strict JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    return value
 
 
 def write_real_report(
