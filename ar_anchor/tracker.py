@@ -222,7 +222,9 @@ class Tracker:
             return bool(np.array_equal(previous, fingerprint))
         return float(cv2.absdiff(previous, fingerprint).mean()) < tolerance
 
-    def _repeat(self, frame: Frame) -> FrameResult:
+    def _repeat(self, frame: Frame, detect_ms: float) -> FrameResult:
+        """The last answer again for a repeated frame (``latency_ms`` holds only the detection it took
+        to know: pose and filter did not run, and their statistics cover the frames where they did)."""
         assert self._previous is not None
         targets = {name: dataclasses.replace(t, events=()) for name, t in self._previous.targets.items()}
         return dataclasses.replace(
@@ -230,7 +232,7 @@ class Tracker:
             index=frame.index,
             timestamp_ns=frame.timestamp_ns,
             targets=targets,
-            latency_ms={"detect_ms": 0.0, "pose_ms": 0.0, "filter_ms": 0.0},
+            latency_ms={"detect_ms": detect_ms},
             repeated=True,
         )
 
@@ -239,7 +241,7 @@ class Tracker:
         t0 = time.perf_counter()
         detections = self._detect(frame.image, camera, frame.timestamp_ns)
         if repeat_candidate and self._previous is not None and _same_corners(detections, self._previous.detections):
-            return self._repeat(frame)
+            return self._repeat(frame, (time.perf_counter() - t0) * 1e3)
         if self.config.pose.recover_markers:
             for solver in self.board_solvers:
                 detections = self.detector.recover(
