@@ -177,7 +177,8 @@ class Tracker:
         self._before_corners = self._last_corners
         self._last_corners = {int(i): c for i, c in zip(detections.ids, detections.corners)}
         for marker_id, corners in self._last_corners.items():
-            self._seen[marker_id] = (corners, timestamp_ns)
+            if self.config.tracks_marker(marker_id):  # (a stray id of no interest is not searched for)
+                self._seen[marker_id] = (corners, timestamp_ns)
         return detections
 
     def process(self, frame: Frame) -> FrameResult:
