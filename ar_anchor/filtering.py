@@ -657,26 +657,26 @@ class TargetTrack:
         if not self.doubtful:
             self._add_evidence(assigned, timestamp_ns)
         self._decide(events)
-        decisive, lean = self._verdict(assigned)
+        decided, lean = self._verdict(assigned)
         if self.committed is not None:
             # Self-correcting: a run of frames that contradict the commitment moves it after
             # ``decisive_frames`` (a decisive frame counts one, a leaning one a third). The output is the
             # frame's lower-error solution from a decisive frame or the run's second frame on (on hand-held
             # clips with truth such frames are right far more often than the commitment), and nothing is
             # vouched for while the run is open.
-            favoured = decisive if decisive is not None else lean
+            favoured = decided if decided is not None else lean
             if favoured == self.committed:
                 self.against = 0
                 self.run = 0
                 self.unconfirmed = False
             elif favoured is not None:
-                self.against += 1.0 if decisive is not None else 1.0 / 3.0  # a leaning frame counts a third
+                self.against += 1.0 if decided is not None else 1.0 / 3.0  # a leaning frame counts a third
                 self.run += 1
                 if self.against >= self.config.decisive_frames - 1e-9:
                     self._switch(favoured, "on contradicting frames", events)
         if self.committed is None:
-            target = self._best_guess(decisive)
-        elif (self.run >= 2 or (self.run and decisive is not None) or self.doubtful or self.unconfirmed) and (
+            target = self._best_guess(decided)
+        elif (self.run >= 2 or (self.run and decided is not None) or self.doubtful or self.unconfirmed) and (
             None not in assigned
         ):
             target = 0 if assigned[0].reproj_px <= assigned[1].reproj_px else 1
@@ -705,10 +705,10 @@ class TargetTrack:
             and self.committed is not None
             and self.committed == self.output_branch
             and assigned[self.output_branch] is not None
-            and decisive in (None, self.output_branch)
+            and decided in (None, self.output_branch)
             and self.against == 0
             and not self.doubtful
-            and not (self.unclear and decisive is None)
+            and not (self.unclear and decided is None)
             and not self._close_call(assigned)
             and not self.unconfirmed
             and not self.outlier
