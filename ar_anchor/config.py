@@ -242,7 +242,7 @@ class FilterConfig:
     decisive_frames: int = 2  # consecutive decisive frames against the output branch move it there
     predict_s: float = 0.2  # publish predictions through gaps at most this long (state "predicted")
     predict_damping_s: float = 0.1  # a prediction's velocity decays with this time constant
-    predict_max_deg: float = 0.5  # ... and it is published only while it may be off by less than this
+    predict_max_deg: float = 0.25  # ... and it is published only while it may be off by less than this
     memory_s: float = 2.0  # a lost target keeps its track (flip memory) this long, then is reset
     restart_gap_s: float = 0.1  # after a gap longer than this the smoothers restart from the measurement
     still_s: float = 0.3  # a target whose measurements stayed within their noise this long is still:
