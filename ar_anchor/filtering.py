@@ -59,6 +59,7 @@ from .pose import BoardPose, MarkerPose, PoseHypothesis
 __all__ = [
     "RotationFilter",
     "decisive",
+    "margin_scale",
     "TargetTrack",
     "TrackEvent",
     "TrackUpdate",
@@ -491,6 +492,7 @@ class TargetTrack:
         self.run = 0  # ... and how many frames that run has: from its second, the output is the frame's pick
         self.doubtful = False  # this frame's assignment of solutions to branches is in doubt
         self.unclear = False  # ... or the tilt could not tell the (far apart) solutions apart this frame
+        self._separation_deg = math.inf  # this frame's angle between its two solutions
         self.unconfirmed = False  # re-acquired after a gap, no frame has confirmed the commitment yet
         self.outlier = False  # this frame's residual is far above the track's usual one
         self._leaning = False  # an undecided target's frame or recent evidence chose its output branch
@@ -539,10 +541,7 @@ class TargetTrack:
         return math.copysign(bound, mean) if bound > 0 else 0.0
 
     def _margin_scale(self) -> float:
-        """The decision margins are set for one marker's four corners. A board's error difference is
-        an RMS over more points, whose detector biases (independent from marker to marker) partly
-        cancel: its margin shrinks with the square root of the number of points (four per marker)."""
-        return min(1.0, math.sqrt(4.0 / max(len(self.points), 4)))
+        return margin_scale(len(self.points))
 
     def _decide(self, events: list[TrackEvent]) -> None:
         cfg = self.config
@@ -641,6 +640,12 @@ class TargetTrack:
         self.measured_ns = timestamp_ns
         self.frames += 1
         self.doubtful = self.unclear = False
+        hypotheses = measurement.hypotheses  # how far apart the two solutions are, asked for several times
+        self._separation_deg = (
+            angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation)
+            if len(hypotheses) == 2
+            else math.inf
+        )
         restart_frame = self.branches is None or self._is_gap(gap_s)
         if self.branches is None:
             assigned = self._start(measurement, camera)
@@ -785,13 +790,8 @@ class TargetTrack:
             self.tilts.predict(gap_s)
         second = tilt_of(hypotheses[1].pose) if len(hypotheses) > 1 else None
         is_branch0, clear = self.tilts.choose(tilt_of(first.pose), second, sigma, 0.0 if restart else gap_s)
-        self.unclear = (
-            not clear
-            and len(hypotheses) == 2
-            and (
-                angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
-            )
-        )
+        apart = len(hypotheses) == 2 and self._separation_deg > self.config.flip_angle_deg
+        self.unclear = not clear and apart
         assigned: list[PoseHypothesis | None] = [None, None]
         if len(hypotheses) == 1:
             assigned[0 if is_branch0 else 1] = first
@@ -803,10 +803,6 @@ class TargetTrack:
                 self.branches[index] = self._new_branch(hypothesis.pose, camera)
         # Unclear for long while the solutions are far apart: which is which may have been lost. (While they
         # are within flip_angle_deg of each other either one is close enough, so unclarity costs nothing.)
-        apart = (
-            len(hypotheses) == 2
-            and angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) > self.config.flip_angle_deg
-        )
         if apart and self.tilts.blind_s > self.config.crossing_blind_s and self.committed is not None:
             events.append(
                 TrackEvent(
@@ -968,9 +964,7 @@ class TargetTrack:
             return False
         a, b = assigned  # type: ignore[misc]
         margin = self.config.decide_margin_px * self._margin_scale()
-        return abs(a.reproj_px - b.reproj_px) < margin and (
-            angle_between_deg(a.pose.rotation, b.pose.rotation) <= 2.0 * self.config.flip_angle_deg
-        )
+        return abs(a.reproj_px - b.reproj_px) < margin and self._separation_deg <= 2.0 * self.config.flip_angle_deg
 
     def _undecided_other(self, assigned: list[PoseHypothesis | None]) -> int | None:
         """The other branch, when this uncommitted frame's output should be halfway between the two:
@@ -981,8 +975,7 @@ class TargetTrack:
             return None
         if self._leaning:
             return None
-        a, b = assigned  # type: ignore[misc]
-        if angle_between_deg(a.pose.rotation, b.pose.rotation) > 2.0 * self.config.flip_angle_deg:
+        if self._separation_deg > 2.0 * self.config.flip_angle_deg:
             return None
         return 1 - self.output_branch
 
@@ -1077,6 +1070,13 @@ class TargetTrack:
             hypotheses,
             tuple(events),
         )
+
+
+def margin_scale(points: int) -> float:
+    """The decision margins are set for one marker's four corners. A board's error difference is an RMS
+    over more points, whose detector biases (independent from marker to marker) partly cancel: its
+    margin shrinks with the square root of the number of points (four per marker)."""
+    return min(1.0, math.sqrt(4.0 / max(points, 4)))
 
 
 def decisive(better_px: float, worse_px: float, config: FilterConfig, sigma_px: float, scale: float = 1.0) -> bool:

@@ -21,7 +21,7 @@ import numpy as np
 from .camera import CameraModel
 from .config import TrackerConfig
 from .detection import Detector, MarkerDetections, plan_regions
-from .filtering import TargetTrack, decisive
+from .filtering import TargetTrack, decisive, margin_scale
 from .geometry import Pose, marker_corners_in_marker
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 from .sources.base import Frame
@@ -317,7 +317,7 @@ class Tracker:
             hypotheses[1].reproj_px,
             self.config.filter,
             max(self.config.filter.corner_noise_px, hypotheses[0].reproj_px * math.sqrt(2.0)),
-            min(1.0, math.sqrt(4.0 / max(len(solved.points_in_target), 4))),
+            margin_scale(len(solved.points_in_target)),
         )
         return self._result(name, "tracked" if sure else "ambiguous", solved.best.pose, solved, camera)
 
