@@ -5,7 +5,6 @@ prediction, a real motion step taken for a flip, association after a dropout, re
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import cv2
 import numpy as np
@@ -19,17 +18,10 @@ from ar_anchor.sources.base import Frame
 from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
 from ar_anchor.tracker import Tracker
 
+from .test_filtering import mirrored
+
 CAMERA = CameraModel.from_fov(1280, 720, 1000.0)
 DT_NS = 33_333_333
-
-
-def mirrored(pose: Pose) -> Pose:
-    """The other IPPE solution of a square: its normal mirrored through the line of sight."""
-    sight = pose.tvec / np.linalg.norm(pose.tvec)
-    normal = pose.rotation[:, 2]
-    axis = np.cross(normal, sight if normal @ sight > 0 else -sight)
-    angle = 2.0 * math.asin(min(float(np.linalg.norm(axis)), 1.0))
-    return Pose.from_matrix(matrix_from_rvec(axis / np.linalg.norm(axis) * angle) @ pose.rotation, pose.tvec)
 
 
 def measurement(truth: Pose, err_true: float = 0.05, err_wrong: float = 0.5) -> MarkerPose:
