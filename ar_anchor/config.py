@@ -22,8 +22,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .boards import layout_from_mapping, read_layout
 from .errors import ConfigError
-from .layouts import layout_from_mapping, read_layout
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -44,7 +44,7 @@ __all__ = [
     "load_config",
 ]
 
-# OpenCV's refinement per option; "edges" is ours (ar_anchor.corners), run on unrefined corners
+# OpenCV's refinement per option; "edges" is ours (ar_anchor.track.corners), run on unrefined corners
 CORNER_REFINEMENTS = {
     "edges": cv2.aruco.CORNER_REFINE_NONE,
     "none": cv2.aruco.CORNER_REFINE_NONE,
@@ -220,7 +220,7 @@ class PoseConfig:
 
 @dataclass(frozen=True)
 class FilterConfig:
-    """Flip resolution and smoothing (see :mod:`ar_anchor.filtering`)."""
+    """Flip resolution and smoothing (see :mod:`ar_anchor.track.filtering`)."""
 
     enabled: bool = True
     corner_noise_px: float = 0.02  # floor of the corner noise; the filter estimates it from residuals
@@ -270,7 +270,7 @@ OVERLAY_KINDS = ("cube", "mesh", "axes")
 
 @dataclass(frozen=True)
 class OverlayConfig:
-    """One virtual object drawn on a target (``[[overlays]]``; see :mod:`ar_anchor.overlay`).
+    """One virtual object drawn on a target (``[[overlays]]``; see :mod:`ar_anchor.render.overlay`).
 
     ``target``: ``marker:<id>``, ``board:<name>``, ``marker:*`` (every marker that is not part of a
     board), ``board:*`` or ``*``; a target named exactly takes only its own overlays. Placement is in

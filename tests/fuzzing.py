@@ -21,7 +21,7 @@ from hypothesis import settings
 PROFILE = os.environ.get("HYPOTHESIS_PROFILE", "ci")
 SCALE = int(os.environ.get("FUZZ_SCALE", "20")) if PROFILE == "long" else 1
 
-# Exit codes of ar_anchor.cli (docs/robustness.md)
+# Exit codes of ar_anchor.cli.main (docs/robustness.md)
 EXIT_CODES = {0, 1, 2, 130}
 
 
@@ -46,12 +46,12 @@ class CliResult:
 
 
 def run_main(argv: Sequence[str]) -> CliResult:
-    """``ar_anchor.cli.main(argv)`` in-process, stdout/stderr captured, SystemExit turned into its code.
+    """``ar_anchor.cli.main.main(argv)`` in-process, stdout/stderr captured, SystemExit turned into its code.
 
     main() changes process-wide state (the "ar_anchor" logger's handler, the SIGTERM handler);
     both are restored so that other tests see what they saw before.
     """
-    from ar_anchor.cli import main
+    from ar_anchor.cli.main import main
 
     logger = logging.getLogger("ar_anchor")
     saved = (list(logger.handlers), logger.level, logger.propagate)

@@ -13,15 +13,15 @@ import cv2
 import numpy as np
 import pytest
 
-from ar_anchor.bench_real import (
+from ar_anchor.bench.real import (
     layout_relative_poses,
     read_poses_csv,
     score_against_layout,
     score_rigid_sheet,
 )
-from ar_anchor.cli import main
+from ar_anchor.boards import layout_from_mapping
+from ar_anchor.cli.main import main
 from ar_anchor.geometry import marker_corners_in_marker
-from ar_anchor.layouts import layout_from_mapping
 
 # ../shared/tools/rigid_sheet.py: beside $AR_ANCHOR_REALDATA when set, else beside the repository
 RIGID_SHEET = (

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ar_anchor.bench_speed import (
+from ar_anchor.bench.speed import (
     ONE_THREAD_PIPELINES,
     PIPELINES,
     render_clip,

@@ -9,8 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import ar_anchor.bench as bench
-from ar_anchor.bench import (
+import ar_anchor.bench.stability as bench
+from ar_anchor.bench.stability import (
     DECISIVE_MARGIN_PX,
     DECISIVE_RATIO,
     Scenario,

@@ -10,16 +10,16 @@ import cv2
 import numpy as np
 import pytest
 
+from ar_anchor.boards import read_layout
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import BoardConfig, DetectorConfig, TrackerConfig, load_config
-from ar_anchor.detection import Detector, MarkerDetections
 from ar_anchor.errors import CameraError, ConfigError, InputError
 from ar_anchor.geometry import Pose, angle_between_deg, look_at
-from ar_anchor.layouts import read_layout
-from ar_anchor.pose import BoardPose, BoardSolver, reprojection_rms
 from ar_anchor.sources.base import Frame
 from ar_anchor.sources.synthetic import PlacedBoard, SyntheticScene, SyntheticSource, Trajectory
-from ar_anchor.tracker import Tracker
+from ar_anchor.track.detection import Detector, MarkerDetections
+from ar_anchor.track.pose import BoardPose, BoardSolver, reprojection_rms
+from ar_anchor.track.tracker import Tracker
 
 # ============================================================================ helpers
 

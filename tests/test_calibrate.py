@@ -23,7 +23,11 @@ import cv2
 import numpy as np
 import pytest
 
-from ar_anchor.calibrate import (
+from ar_anchor.camera import CameraModel
+from ar_anchor.errors import InputError, OutputError, SourceError
+from ar_anchor.sources.live import Captured
+from ar_anchor.sources.synthetic import _pinhole_canvas
+from ar_anchor.tools.calibrate import (
     CharucoSpec,
     View,
     ViewDetector,
@@ -34,10 +38,6 @@ from ar_anchor.calibrate import (
     format_report,
     select_views,
 )
-from ar_anchor.camera import CameraModel
-from ar_anchor.errors import InputError, OutputError, SourceError
-from ar_anchor.sources.live import Captured
-from ar_anchor.sources.synthetic import _pinhole_canvas
 
 RERUN = Path(sys.executable).with_name("rerun")
 TIMEOUT_S = 60
@@ -345,7 +345,7 @@ def test_outlier_views_are_dropped_then_recalibrated(detected):
 
 
 def test_k3_is_fixed_only_when_the_radial_model_folds_inside_the_image():
-    from ar_anchor.calibrate import _radial_folds
+    from ar_anchor.tools.calibrate import _radial_folds
 
     assert not _radial_folds(TRUE_K, TRUE_DIST, (WIDTH, HEIGHT))
     # OpenCV's calibration of its tutorial webcam: large k2, k3, still monotonic over the image
@@ -435,7 +435,7 @@ def test_no_board_and_too_few_views_are_input_errors(views_dir, tmp_path):
 
 
 def test_unwritable_out_is_an_output_error_and_leaves_nothing(views_dir, tmp_path):
-    from ar_anchor.calibrate import write_camera_yaml
+    from ar_anchor.tools.calibrate import write_camera_yaml
 
     report = calibrate_source(str(copy_views(views_dir, tmp_path / "shots", 6)), spec())
     blocker = tmp_path / "file"

@@ -1,4 +1,4 @@
-"""Corners fitted to the markers' edges (ar_anchor.corners) and the distorted synthetic camera."""
+"""Corners fitted to the markers' edges (ar_anchor.track.corners) and the distorted synthetic camera."""
 
 from __future__ import annotations
 
@@ -6,13 +6,13 @@ import cv2
 import numpy as np
 import pytest
 
+from ar_anchor.boards import read_layout
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import DetectorConfig
-from ar_anchor.corners import FITTED, NOT_TRIED, REJECTED, fit_corners_by_edges, refine_corners_by_edges
-from ar_anchor.detection import Detector
 from ar_anchor.geometry import Pose, look_at, marker_corners_in_marker
-from ar_anchor.layouts import read_layout
 from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.track.corners import FITTED, NOT_TRIED, REJECTED, fit_corners_by_edges, refine_corners_by_edges
+from ar_anchor.track.detection import Detector
 
 CELLS = 6  # DICT_4X4_50: 4 bits + the border on each side
 

@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from ar_anchor.bench import Scenario, evaluate, run_scenario
+from ar_anchor.bench.stability import Scenario, evaluate, run_scenario
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import FilterConfig, demo_config
-from ar_anchor.filtering import RotationFilter, TargetTrack, TranslationFilter, pose_covariance
 from ar_anchor.geometry import Pose, angle_between_deg, marker_corners_in_marker, matrix_from_rvec
-from ar_anchor.pose import MarkerPose, PoseHypothesis
+from ar_anchor.track.filtering import RotationFilter, TargetTrack, TranslationFilter, pose_covariance
+from ar_anchor.track.pose import MarkerPose, PoseHypothesis
 
 DT = 1.0 / 30.0
 
@@ -40,7 +40,7 @@ def test_two_mode_filter_matches_filterpys_imm_step_by_step():
     # given filterpy's IMMEstimator over two KalmanFilters, set up as _TwoModeCV's still and moving models
     from filterpy.kalman import IMMEstimator, KalmanFilter
 
-    from ar_anchor.filtering import _cv_process_noise, _cv_transition, _TwoModeCV
+    from ar_anchor.track.filtering import _cv_process_noise, _cv_transition, _TwoModeCV
 
     rng = np.random.default_rng(1)
     x0 = rng.normal(size=6)
@@ -255,7 +255,7 @@ def test_orbiting_camera_commits_fast_and_follows_without_lag():
 
 def test_dropout_is_reacquired_without_a_flip_and_never_published_blind():
     from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
-    from ar_anchor.tracker import Tracker
+    from ar_anchor.track.tracker import Tracker
 
     # given an orbiting camera (about 45 deg/s at the peak) that loses the marker for 6 frames (0.2 s)
     scene = SyntheticScene(
@@ -305,7 +305,7 @@ def test_static_near_marker_jitter_is_far_below_raw():
 
 def test_no_filter_is_the_raw_pipeline(camera):
     from ar_anchor.sources.synthetic import SyntheticSource, demo_scene
-    from ar_anchor.tracker import Tracker
+    from ar_anchor.track.tracker import Tracker
 
     config = demo_config()
     raw_config = dataclasses.replace(config, filter=dataclasses.replace(config.filter, enabled=False))

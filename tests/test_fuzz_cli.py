@@ -106,8 +106,8 @@ def _no_display(monkeypatch):
 @pytest.fixture
 def stub_benchmarks(monkeypatch):
     """bench's report writers, replaced: they record their arguments and write tiny reports."""
-    import ar_anchor.bench as bench
-    import ar_anchor.bench_speed as bench_speed
+    import ar_anchor.bench.speed as bench_speed
+    import ar_anchor.bench.stability as bench
 
     calls = []
 
@@ -487,7 +487,7 @@ def test_live_connect_to_a_malformed_url_is_a_usage_error(workspace):
 
 def test_bench_out_that_is_a_file_is_a_clean_error(workspace, monkeypatch):
     # the real report writer, on an empty scenario list (the minutes-long grid is not what is tested)
-    import ar_anchor.bench as bench
+    import ar_anchor.bench.stability as bench
 
     monkeypatch.setattr(bench, "stability_scenarios", lambda quick: [])
     with inside(workspace):

@@ -27,6 +27,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from ar_anchor.boards import read_layout
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import (
     CORNER_REFINEMENTS,
@@ -42,8 +43,7 @@ from ar_anchor.config import (
     parse_config,
 )
 from ar_anchor.errors import CameraError, ConfigError, InputError
-from ar_anchor.layouts import read_layout
-from ar_anchor.models import MAX_TRIANGLES, Model, load_mesh
+from ar_anchor.render.models import MAX_TRIANGLES, Model, load_mesh
 
 from .fuzzing import fuzz_settings, outcome, time_limit
 
@@ -355,9 +355,9 @@ def assert_valid_config(config: TrackerConfig, source: str) -> None:
 def assert_usable_config(config: TrackerConfig) -> None:
     """The next stages accept a valid config: overlays (mesh files are read here, a typed error when one
     is missing or bad) and the tracker on one frame."""
-    from ar_anchor.overlay import OverlayRenderer
+    from ar_anchor.render.overlay import OverlayRenderer
     from ar_anchor.sources.base import Frame
-    from ar_anchor.tracker import Tracker
+    from ar_anchor.track.tracker import Tracker
 
     camera = CameraModel.from_fov(320, 240, 300.0)
     try:
@@ -775,7 +775,7 @@ def test_deeply_nested_files_are_input_errors_not_segfaults(tmp_path):
         from pathlib import Path
         from ar_anchor.camera import CameraModel
         from ar_anchor.errors import InputError
-        from ar_anchor.layouts import read_layout
+        from ar_anchor.boards import read_layout
         for path in sorted(Path(sys.argv[1]).iterdir()):
             try:
                 read_layout(path) if path.name == "map.yml" else CameraModel.from_yaml(path)

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import BoardConfig
 from ar_anchor.geometry import Pose, marker_corners_in_marker, matrix_from_rvec
-from ar_anchor.pose import (
+from ar_anchor.track.pose import (
     BoardPose,
     BoardSolver,
     MarkerPose,

@@ -19,10 +19,10 @@ import cv2
 import numpy as np
 import pytest
 
-from ar_anchor.cli import build_parser
+from ar_anchor.cli.main import build_parser
 from ar_anchor.config import load_config
 from ar_anchor.errors import InputError
-from ar_anchor.markers import (
+from ar_anchor.tools.markers import (
     MarkerSheet,
     marker_bits,
     marker_rects,

@@ -345,7 +345,7 @@ def test_image_folder_with_no_readable_image_is_refused(media):
 
 # ============================================================================ the user's screen
 
-SCRIPT = "import sys; from ar_anchor.cli import main; sys.exit(main(sys.argv[1:]))"
+SCRIPT = "import sys; from ar_anchor.cli.main import main; sys.exit(main(sys.argv[1:]))"
 
 
 @pytest.mark.parametrize("fault", ["corrupt-image", "truncated-video"])

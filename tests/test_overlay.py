@@ -13,15 +13,15 @@ import pytest
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import OverlayConfig, TrackerConfig, demo_config, load_config
-from ar_anchor.corners import refine_corners_by_edges
-from ar_anchor.detection import MarkerDetections
 from ar_anchor.errors import ConfigError
 from ar_anchor.geometry import Pose, look_at
-from ar_anchor.models import cube_model, load_mesh, pin_model
-from ar_anchor.overlay import OverlayRenderer, anchor_from_target
+from ar_anchor.render.models import cube_model, load_mesh, pin_model
+from ar_anchor.render.overlay import OverlayRenderer, anchor_from_target
 from ar_anchor.sources.base import Frame
 from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
-from ar_anchor.tracker import FrameResult, TargetResult, Tracker
+from ar_anchor.track.corners import refine_corners_by_edges
+from ar_anchor.track.detection import MarkerDetections
+from ar_anchor.track.tracker import FrameResult, TargetResult, Tracker
 
 REPO = Path(__file__).resolve().parents[1]
 DARK = (30, 30, 30)

@@ -1,4 +1,4 @@
-"""The run loop's threads (ar_anchor.pipeline) and what the run reports about them."""
+"""The run loop's threads (ar_anchor.run.threads) and what the run reports about them."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from ar_anchor.pipeline import OutputStage, Prefetcher
+from ar_anchor.run.threads import OutputStage, Prefetcher
 from ar_anchor.sources.base import Frame
 
 

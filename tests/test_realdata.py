@@ -8,8 +8,8 @@ import pytest
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import DetectorConfig
-from ar_anchor.detection import Detector
-from ar_anchor.pose import MarkerPose, solve_marker
+from ar_anchor.track.detection import Detector
+from ar_anchor.track.pose import MarkerPose, solve_marker
 
 pytestmark = pytest.mark.realdata
 

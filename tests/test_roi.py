@@ -9,11 +9,11 @@ import pytest
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import BoardConfig, DetectorConfig, MarkersConfig, TrackerConfig, demo_config
-from ar_anchor.detection import Detector, Region, plan_regions
 from ar_anchor.geometry import Pose, angle_between_deg
 from ar_anchor.sources.base import Frame
 from ar_anchor.sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
-from ar_anchor.tracker import Tracker
+from ar_anchor.track.detection import Detector, Region, plan_regions
+from ar_anchor.track.tracker import Tracker
 
 
 def orbit_frames(frames: int = 40, markers=((0, 0.05, (0.0, 0.0)),), size=(1280, 720, 1000.0)):
@@ -83,7 +83,7 @@ def test_roi_tracking_is_as_accurate_as_full_frame_and_searches_less():
     camera, frames = orbit_frames(frames=40, markers=((0, 0.05, (0.0, 0.0)), (1, 0.05, (0.12, 0.05))))
     errors, full_searches = {}, {}
     for roi in (False, True):
-        from ar_anchor.tracker import Tracker
+        from ar_anchor.track.tracker import Tracker
 
         tracker = Tracker(tracker_config(roi, ids=(0, 1)), camera)
         calls = {"full": 0}
@@ -111,7 +111,7 @@ def test_roi_tracking_is_as_accurate_as_full_frame_and_searches_less():
 
 
 def test_a_marker_missed_by_the_regions_is_searched_for_in_the_whole_frame_at_once(camera):
-    from ar_anchor.tracker import Tracker
+    from ar_anchor.track.tracker import Tracker
 
     _, frames = orbit_frames(frames=3)
     tracker = Tracker(tracker_config(True), frames[0].image.shape[1::-1] and CameraModel.from_fov(1280, 720, 1000.0))

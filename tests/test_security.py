@@ -26,11 +26,11 @@ import cv2
 import numpy as np
 import pytest
 
+from ar_anchor.boards import read_layout
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import load_config
 from ar_anchor.errors import CameraError, ConfigError
-from ar_anchor.layouts import read_layout
-from ar_anchor.models import MESH_SUFFIXES, load_mesh
+from ar_anchor.render.models import MESH_SUFFIXES, load_mesh
 
 from .fuzzing import assert_clean_exit, run_main
 
@@ -224,7 +224,7 @@ def test_code_shaped_input_files_stay_inert(tmp_path, kind, text):
         elif kind == "layout":
             read_layout(path)
         elif kind == "config":
-            from ar_anchor.overlay import OverlayRenderer
+            from ar_anchor.render.overlay import OverlayRenderer
 
             OverlayRenderer(load_config(path), CameraModel.default_synthetic())
         else:

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from ar_anchor.config import BoardConfig, DetectorConfig, demo_config
-from ar_anchor.detection import Detector
 from ar_anchor.geometry import Pose, look_at, marker_corners_in_marker
 from ar_anchor.sources.synthetic import (
     PlacedBoard,
@@ -19,6 +18,7 @@ from ar_anchor.sources.synthetic import (
     board_marker_poses,
     demo_scene,
 )
+from ar_anchor.track.detection import Detector
 
 LENGTH = 0.05
 

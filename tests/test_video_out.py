@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from ar_anchor import video_out
 from ar_anchor.errors import OutputError
-from ar_anchor.video_out import AnnotatedVideoWriter
+from ar_anchor.render import video as video_out
+from ar_anchor.render.video import AnnotatedVideoWriter
 
 N = 25
 WIDTH, HEIGHT = 320, 240
@@ -74,7 +74,7 @@ def write_pattern(path: Path, frames: int = N, width: int = WIDTH, height: int =
 def warnings_log(caplog, monkeypatch):
     # the CLI's logging setup turns propagation off on "ar_anchor"; make sure caplog sees records
     monkeypatch.setattr(logging.getLogger("ar_anchor"), "propagate", True)
-    caplog.set_level(logging.WARNING, logger="ar_anchor.video_out")
+    caplog.set_level(logging.WARNING, logger="ar_anchor.render.video")
     return caplog
 
 
@@ -299,7 +299,7 @@ def test_without_h264_falls_back_to_mp4v_with_one_warning(tmp_path, monkeypatch,
     writer = write_pattern(path)
 
     assert writer.codec == "mp4v"
-    warnings = [r for r in warnings_log.records if r.name == "ar_anchor.video_out" and r.levelno == logging.WARNING]
+    warnings = [r for r in warnings_log.records if r.name == "ar_anchor.render.video" and r.levelno == logging.WARNING]
     assert len(warnings) == 1
     assert "H.264 is unavailable" in warnings[0].getMessage()
     assert "mp4v" in warnings[0].getMessage()

@@ -54,10 +54,10 @@ from xml.sax.saxutils import escape
 import cv2
 import numpy as np
 
-from . import __version__
-from .config import dictionary_id, dictionary_names, dictionary_size
-from .errors import ConfigError, InputError, OutputError
-from .outputs import prepare_out_dir
+from .. import __version__
+from ..config import dictionary_id, dictionary_names, dictionary_size
+from ..errors import ConfigError, InputError, OutputError
+from ..run.outputs import prepare_out_dir
 
 __all__ = [
     "FORMATS",

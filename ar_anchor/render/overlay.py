@@ -35,10 +35,10 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .camera import CameraModel
-from .config import OverlayConfig, TrackerConfig
+from ..camera import CameraModel
+from ..config import OverlayConfig, TrackerConfig
+from ..track.tracker import FrameResult, TargetResult
 from .models import Model, cube_model, load_mesh
-from .tracker import FrameResult, TargetResult
 
 __all__ = ["Overlay", "OverlayRenderer", "anchor_from_target", "STATE_STYLE"]
 

@@ -20,15 +20,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .camera import opencv_path_problem
-from .errors import InputError
+from ..camera import opencv_path_problem
+from ..errors import InputError
+from ..render.overlay import OverlayRenderer
+from ..render.video import SUPPORTED_EXTENSIONS, AnnotatedVideoWriter
+from ..sources.base import Frame, FrameSource
+from ..track.tracker import FrameResult, Tracker
+from ..viz.recorder import RerunRecorder
 from .outputs import PosesCsvWriter, RawVideoWriter, RunSummary, prepare_out_dir, write_json_atomic
-from .overlay import OverlayRenderer
-from .pipeline import OutputStage, Prefetcher
-from .sources.base import Frame, FrameSource
-from .tracker import FrameResult, Tracker
-from .video_out import SUPPORTED_EXTENSIONS, AnnotatedVideoWriter
-from .viz import RerunRecorder
+from .threads import OutputStage, Prefetcher
 
 __all__ = ["RunOptions", "RunOutputs", "run_session"]
 

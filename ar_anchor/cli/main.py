@@ -17,8 +17,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from . import __version__
-from .errors import ArAnchorError, InputError
+from .. import __version__
+from ..errors import ArAnchorError, InputError
 
 __all__ = ["main"]
 
@@ -358,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
         "reproduce the PnP textbook's experiments: outliers, ransac, jitter",
         "Each study writes NAME.png, NAME.md, NAME.json and NAME.rrd to --out (default recordings/study/).",
     )
-    from .study import configure_parser as configure_study
+    from ..bench.study import configure_parser as configure_study
 
     configure_study(study)
     study.set_defaults(func=cmd_study)
@@ -450,7 +450,7 @@ class _LiveStatus:
 
 def _load_tracker_config(args: argparse.Namespace, *, demo: bool = False):  # noqa: ANN202
     """``--config`` (or the built-in defaults; ``demo``: the demo scene's) with the command-line overrides."""
-    from .config import load_config
+    from ..config import load_config
 
     config = load_config(args.config, demo=demo)
     return config.with_overrides(
@@ -461,7 +461,7 @@ def _load_tracker_config(args: argparse.Namespace, *, demo: bool = False):  # no
 
 
 def _camera_for_source(camera: Any, resolution: tuple[int, int], option: str) -> Any:
-    from .errors import CameraError
+    from ..errors import CameraError
 
     try:
         return camera.scaled_to(*resolution)
@@ -482,11 +482,11 @@ def _finish(args: argparse.Namespace, outputs: Any) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .camera import CameraModel
-    from .errors import SourceError
-    from .session import RunOptions, run_session
-    from .sources.synthetic import SyntheticSource, Trajectory, demo_scene
-    from .tracker import Tracker
+    from ..camera import CameraModel
+    from ..errors import SourceError
+    from ..run.loop import RunOptions, run_session
+    from ..sources.synthetic import SyntheticSource, Trajectory, demo_scene
+    from ..track.tracker import Tracker
 
     config = _load_tracker_config(args, demo=True)
     camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
@@ -525,11 +525,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from .camera import CameraModel
-    from .errors import CameraError
-    from .session import RunOptions, run_session
-    from .sources import open_file_source
-    from .tracker import Tracker
+    from ..camera import CameraModel
+    from ..errors import CameraError
+    from ..run.loop import RunOptions, run_session
+    from ..sources import open_file_source
+    from ..track.tracker import Tracker
 
     config = _load_tracker_config(args)
     source = open_file_source(args.source, fps=args.fps)
@@ -580,12 +580,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_live(args: argparse.Namespace) -> int:
-    from .camera import CameraModel
-    from .errors import CameraError, SourceError
-    from .session import RunOptions, run_session
-    from .sources.live import LiveSource, SyntheticGrabber, WebcamGrabber
-    from .sources.synthetic import Trajectory, demo_scene
-    from .tracker import Tracker
+    from ..camera import CameraModel
+    from ..errors import CameraError, SourceError
+    from ..run.loop import RunOptions, run_session
+    from ..sources.live import LiveSource, SyntheticGrabber, WebcamGrabber
+    from ..sources.synthetic import Trajectory, demo_scene
+    from ..track.tracker import Tracker
 
     config = _load_tracker_config(args, demo=args.device == "synthetic")
     fps = args.fps or 30.0
@@ -666,14 +666,14 @@ def cmd_live(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import write_board_report, write_overlay_report, write_stability_report
-    from .config import load_config
-    from .outputs import prepare_out_dir
+    from ..bench.stability import write_board_report, write_overlay_report, write_stability_report
+    from ..config import load_config
+    from ..run.outputs import prepare_out_dir
 
     config = load_config(args.config)
     real = None
     if args.name == "real":  # its data files are checked (exit 2) before anything is written
-        from .bench_real import real_inputs
+        from ..bench.real import real_inputs
 
         real = real_inputs(args.video, args.camera, args.dictionary, args.marker_length, args.layout)
     prepare_out_dir(args.out)  # before minutes of work, not after
@@ -684,7 +684,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
 
     if real is not None:
-        from .bench_real import real_summary, write_real_report
+        from ..bench.real import real_summary, write_real_report
 
         for option in ("video", "camera", "dictionary", "marker_length", "layout", "config"):
             if getattr(args, option) is not None:
@@ -701,13 +701,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         print(real_summary(write_real_report(args.out, real, config, command=command, progress=frames)))
     elif args.name == "run":
-        from .bench_run import write_run_report
+        from ..bench.run import write_run_report
 
         if args.minutes is not None:
             command += f" --minutes {args.minutes:g}"
         write_run_report(args.out, quick=args.quick, minutes=args.minutes, progress=progress, command=command)
     elif args.name == "speed":
-        from .bench_speed import write_speed_report
+        from ..bench.speed import write_speed_report
 
         write_speed_report(args.out, quick=args.quick, progress=progress, command=command)
     elif args.name == "overlay":
@@ -722,19 +722,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_study(args: argparse.Namespace) -> int:
-    from .study import run_study
+    from ..bench.study import run_study
 
     return run_study(args)
 
 
 def cmd_markers(args: argparse.Namespace) -> int:
-    from .markers import run_markers
+    from ..tools.markers import run_markers
 
     return run_markers(args)
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibrate import run_calibrate
+    from ..tools.calibrate import run_calibrate
 
     return run_calibrate(args)
 

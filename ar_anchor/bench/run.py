@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from .bench_speed import _machine, render_clip, speed_scene
-from .camera import CameraModel
+from ..camera import CameraModel
+from .speed import _machine, render_clip, speed_scene
 
 __all__ = ["run_run_benchmark", "write_run_report"]
 

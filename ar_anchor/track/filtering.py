@@ -51,9 +51,9 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from .camera import CameraModel
-from .config import FilterConfig
-from .geometry import Pose, angle_between_deg, matrix_from_rvec, rvec_from_matrix
+from ..camera import CameraModel
+from ..config import FilterConfig
+from ..geometry import Pose, angle_between_deg, matrix_from_rvec, rvec_from_matrix
 from .pose import BoardPose, MarkerPose, PoseHypothesis
 
 __all__ = [

@@ -8,9 +8,9 @@ timed) at 720p and 1080p with a moving camera:
     ``DetectorParameters`` on the grey image (the BGR -> grey conversion counts as detection), then
     ``cv2.solvePnP(..., SOLVEPNP_IPPE_SQUARE)`` per marker.
 ``tracker_full``
-    :class:`~ar_anchor.tracker.Tracker` with ROI tracking off (full-frame detection every frame).
+    :class:`~ar_anchor.track.tracker.Tracker` with ROI tracking off (full-frame detection every frame).
 ``tracker_roi``
-    :class:`~ar_anchor.tracker.Tracker` with the default detector settings (ROI tracking on).
+    :class:`~ar_anchor.track.tracker.Tracker` with the default detector settings (ROI tracking on).
 
 The pipelines take turns frame by frame (the order rotates every frame), so a background load that
 comes and goes on a shared machine hits all of them alike. Every pipeline first runs a throw-away
@@ -45,12 +45,12 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .config import BoardConfig, TrackerConfig, dictionary_id
-from .geometry import Pose, pose_errors
-from .sources.base import Frame
-from .sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
-from .tracker import Tracker
+from ..camera import CameraModel
+from ..config import BoardConfig, TrackerConfig, dictionary_id
+from ..geometry import Pose, pose_errors
+from ..sources.base import Frame
+from ..sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ..track.tracker import Tracker
 
 __all__ = [
     "ONE_THREAD_PIPELINES",
@@ -440,10 +440,10 @@ def _end_to_end(
     video: Path, scene: SyntheticScene, truths: Sequence[Mapping[str, Pose]], base: TrackerConfig, tmp: Path
 ) -> dict[str, Any]:
     """decode -> track -> overlay -> rerun log, one frame after the other, with the ROI tracker."""
-    from .config import OverlayConfig, RecordingConfig
-    from .overlay import OverlayRenderer
-    from .sources.files import VideoFileSource
-    from .viz import RerunRecorder
+    from ..config import OverlayConfig, RecordingConfig
+    from ..render.overlay import OverlayRenderer
+    from ..sources.files import VideoFileSource
+    from ..viz.recorder import RerunRecorder
 
     camera = scene.camera
     config = dataclasses.replace(
@@ -594,7 +594,7 @@ def run_speed_benchmark(
                 render_start = time.perf_counter()
                 is_e2e = end_to_end and (width, height, focal) == tuple(largest) and scene_key == e2e_scene
                 if is_e2e:
-                    from .video_out import AnnotatedVideoWriter
+                    from ..render.video import AnnotatedVideoWriter
 
                     video = tmp / "clip.mp4"
                     with AnnotatedVideoWriter(video, fps=scene.fps) as writer:

@@ -60,11 +60,10 @@ from typing import Any
 
 import numpy as np
 
-from .camera import CameraModel
-from .config import BoardConfig, TrackerConfig
-from .detection import Detector
-from .geometry import Pose, angle_between_deg, pose_errors
-from .sources.synthetic import (
+from ..camera import CameraModel
+from ..config import BoardConfig, TrackerConfig
+from ..geometry import Pose, angle_between_deg, pose_errors
+from ..sources.synthetic import (
     Lighting,
     Occluder,
     PlacedBoard,
@@ -75,7 +74,8 @@ from .sources.synthetic import (
     marker_sheet,
     webcam_camera,
 )
-from .tracker import Tracker
+from ..track.detection import Detector
+from ..track.tracker import Tracker
 
 __all__ = [
     "ACCEPTANCE",
@@ -1123,10 +1123,10 @@ def run_overlay_benchmark(frames: int = 60, progress: Callable[[int, int, str], 
     seen from 0.5 m so it covers about a fifth of the frame's height, at 720p and 1080p."""
     import tempfile  # noqa: PLC0415
 
-    from .config import OverlayConfig  # noqa: PLC0415
-    from .detection import MarkerDetections  # noqa: PLC0415
-    from .overlay import OverlayRenderer  # noqa: PLC0415
-    from .tracker import FrameResult, TargetResult  # noqa: PLC0415
+    from ..config import OverlayConfig  # noqa: PLC0415
+    from ..render.overlay import OverlayRenderer  # noqa: PLC0415
+    from ..track.detection import MarkerDetections  # noqa: PLC0415
+    from ..track.tracker import FrameResult, TargetResult  # noqa: PLC0415
 
     rows = []
     sizes = [(1280, 720, 1000.0), (1920, 1080, 1480.0)]

@@ -29,8 +29,8 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
-from .sources.base import Frame
-from .tracker import FrameResult
+from ..sources.base import Frame
+from ..track.tracker import FrameResult
 
 __all__ = ["OutputStage", "Prefetcher"]
 

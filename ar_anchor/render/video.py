@@ -2,7 +2,7 @@
 
 :class:`AnnotatedVideoWriter` takes BGR ``uint8`` frames (the images drawn by the viewer) and
 writes them to a file meant for sharing, not for replay (a lossless, frame-exact recording is
-:class:`~ar_anchor.outputs.RawVideoWriter`'s job).
+:class:`~ar_anchor.run.outputs.RawVideoWriter`'s job).
 
 Codec choice, by file extension:
 
@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import OutputError
+from ..errors import OutputError
 
 __all__ = ["SUPPORTED_EXTENSIONS", "AnnotatedVideoWriter"]
 
@@ -211,7 +211,7 @@ class AnnotatedVideoWriter:
         self._av, self._container, self._stream = av, container, stream
 
     def _open_cv(self, fourcc: str, width: int, height: int) -> None:
-        import cv2  # noqa: PLC0415 - keep `import ar_anchor.video_out` cheap
+        import cv2  # noqa: PLC0415 - keep `import ar_anchor.render.video` cheap
 
         size = (width + self._pad[0], height + self._pad[1])
         writer = cv2.VideoWriter(str(self.path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*fourcc), self.fps, size)

@@ -40,13 +40,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from . import __version__
-from .bench_speed import _jsonable
-from .camera import CameraModel
-from .config import TrackerConfig, dictionary_id
-from .errors import InputError
-from .geometry import marker_corners_in_marker
-from .layouts import Layout, read_layout
+from .. import __version__
+from ..boards import Layout, read_layout
+from ..camera import CameraModel
+from ..config import TrackerConfig, dictionary_id
+from ..errors import InputError
+from ..geometry import marker_corners_in_marker
+from .speed import _jsonable
 
 __all__ = [
     "DEFAULT_DICTIONARY",
@@ -295,7 +295,7 @@ def plain_opencv_poses(
 
     ``camera``: a :class:`CameraModel` or a calibration file, scaled to the video's frame size.
     """
-    from .sources import open_file_source
+    from ..sources import open_file_source
 
     poses: PoseTable = defaultdict(dict)
     with open_file_source(video) as source:
@@ -313,7 +313,7 @@ def plain_opencv_poses(
 def default_realdata_root() -> Path:
     """``$AR_ANCHOR_REALDATA``, else ``../shared/realdata`` beside the repository."""
     env = os.environ.get("AR_ANCHOR_REALDATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "realdata"
+    return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "realdata"
 
 
 @dataclass(frozen=True)
@@ -413,13 +413,13 @@ def run_real(
     *,
     progress: Callable[[int, int | None], None] | None = None,
 ) -> RealRun:
-    """Run :class:`~ar_anchor.tracker.Tracker` and the plain OpenCV baseline over the same decoded frames.
+    """Run :class:`~ar_anchor.track.tracker.Tracker` and the plain OpenCV baseline over the same decoded frames.
 
     The camera is scaled to the video's size as ``ar-anchor replay`` does; the baseline uses the
     config's dictionary and (default) marker length.
     """
-    from .sources import open_file_source
-    from .tracker import Tracker
+    from ..sources import open_file_source
+    from ..track.tracker import Tracker
 
     run = RealRun()
     start = time.perf_counter()

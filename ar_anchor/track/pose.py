@@ -22,8 +22,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .geometry import Pose, angle_between_deg, marker_corners_in_marker
+from ..camera import CameraModel
+from ..geometry import Pose, angle_between_deg, marker_corners_in_marker
 
 __all__ = [
     "BoardPose",

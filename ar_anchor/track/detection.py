@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .config import CORNER_REFINEMENTS, DetectorConfig, dictionary_id
+from ..camera import CameraModel
+from ..config import CORNER_REFINEMENTS, DetectorConfig, dictionary_id
 from .corners import refine_corners_by_edges
 
 __all__ = ["Detector", "MarkerDetections", "Region", "plan_regions"]
@@ -106,7 +106,7 @@ def plan_regions(
 
 class Detector:
     """Find markers of one dictionary, with sub-pixel corners fitted to the markers' edges by default
-    (:mod:`ar_anchor.corners`; ``corner_refinement`` selects OpenCV's methods instead)."""
+    (:mod:`ar_anchor.track.corners`; ``corner_refinement`` selects OpenCV's methods instead)."""
 
     def __init__(self, config: DetectorConfig) -> None:
         self.config = config

@@ -44,17 +44,17 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .config import BoardConfig, TrackerConfig, load_config
-from .errors import CameraError, InputError, OutputError
-from .geometry import Pose, angle_between_deg
-from .sources.base import Frame
-from .sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ..camera import CameraModel
+from ..config import BoardConfig, TrackerConfig, load_config
+from ..errors import CameraError, InputError, OutputError
+from ..geometry import Pose, angle_between_deg
+from ..sources.base import Frame
+from ..sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
 
 # The tracker (and bench, which imports it) load scipy and filterpy: they are imported where a study
 # runs, so that `ar-anchor`'s parser, which calls configure_parser, stays quick to build.
 if TYPE_CHECKING:
-    from .tracker import Tracker
+    from ..track.tracker import Tracker
 
 __all__ = [
     "DEFAULT_OUT",
@@ -517,7 +517,7 @@ class JitterSetup:
         )
 
     def describe(self) -> dict[str, Any]:
-        from .bench import FLIP_DEG, SETTLE_FRAMES
+        from .stability import FLIP_DEG, SETTLE_FRAMES
 
         k = self.camera.camera_matrix
         return {
@@ -545,7 +545,7 @@ PIPELINES = ("raw", "tracker")
 
 def _static_metrics(poses: Sequence[Pose | None], truth: Pose | None) -> dict[str, Any]:
     """Spread of a static target's poses: std of ``||t||``, RMS angle about the mean rotation, flips."""
-    from .bench import FLIP_DEG, _mean_rotation
+    from .stability import FLIP_DEG, _mean_rotation
 
     measured = [p for p in poses if p is not None]
     out: dict[str, Any] = {"frames": len(measured), "detected_pct": 100.0 * len(measured) / max(len(poses), 1)}
@@ -588,8 +588,8 @@ def run_jitter(
     recording) when given. The result's ``views`` holds each distance's noise-free image (for the
     recording; not JSON).
     """
-    from .bench import SETTLE_FRAMES
-    from .tracker import Tracker
+    from ..track.tracker import Tracker
+    from .stability import SETTLE_FRAMES
 
     scene, aim = setup.scene()
     source = SyntheticSource(scene)
@@ -1372,7 +1372,7 @@ def _seeds(args: argparse.Namespace, default: int) -> int:
 
 
 def _jitter_setup(args: argparse.Namespace, defaults: _Defaults, camera: CameraModel | None) -> JitterSetup:
-    from .bench import SETTLE_FRAMES
+    from .stability import SETTLE_FRAMES
 
     frames = defaults.frames if args.frames is None else args.frames
     _check(
@@ -1531,7 +1531,7 @@ def _study(
             ("jitter/distance_std_mm", "Distance std (mm)"),
             ("jitter/frames/rotation_error_deg", "Rotation error per frame (deg)"),
         ]
-    from .outputs import prepare_out_dir  # (imports the tracker: not on every CLI start)
+    from ..run.outputs import prepare_out_dir  # (imports the tracker: not on every CLI start)
 
     prepare_out_dir(out)
     recording = _Recording(out / f"{name}.rrd", name, plots)

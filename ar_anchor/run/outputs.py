@@ -18,9 +18,9 @@ from typing import IO, Any
 
 import numpy as np
 
-from .errors import InputError, OutputError
-from .geometry import Pose, pose_errors
-from .tracker import FrameResult
+from ..errors import InputError, OutputError
+from ..geometry import Pose, pose_errors
+from ..track.tracker import FrameResult
 
 __all__ = [
     "POSES_CSV_HEADER",

@@ -59,9 +59,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .config import dictionary_id, dictionary_names
-from .errors import ArAnchorError, ConfigError, InputError, OutputError, SourceError
+from ..camera import CameraModel
+from ..config import dictionary_id, dictionary_names
+from ..errors import ArAnchorError, ConfigError, InputError, OutputError, SourceError
 
 __all__ = [
     "CalibrationReport",
@@ -715,8 +715,8 @@ def _gather_files(
     source: str, detector: ViewDetector, max_views: int, progress: Progress | None
 ) -> tuple[list[View], list[Rejection], int, tuple[int, int], int]:
     """Detect in the (sampled) frames of a folder, glob or video: (views, rejections, considered, size, step)."""
-    from .sources import open_file_source
-    from .sources.files import ImageFolderSource
+    from ..sources import open_file_source
+    from ..sources.files import ImageFolderSource
 
     try:
         opened = open_file_source(source)
@@ -762,7 +762,7 @@ def _gather_device(
     grabber: object | None = None,
 ) -> tuple[list[View], list[Rejection], int, tuple[int, int]]:
     """Capture from a device until ``max_views`` distinct sharp views or ``duration_s`` (or Ctrl-C)."""
-    from .sources.live import LiveSource, WebcamGrabber
+    from ..sources.live import LiveSource, WebcamGrabber
 
     if grabber is None:
         grabber = WebcamGrabber(source.strip(), width=width, height=height, fps=fps)
@@ -1034,7 +1034,7 @@ class _Recording:
         import rerun as rr
         import rerun.blueprint as rrb
 
-        from .viz import spawn_local_viewer
+        from ..viz.recorder import spawn_local_viewer
 
         self.rr = rr
         self.rec = rr.RecordingStream("ar_anchor_calibrate")

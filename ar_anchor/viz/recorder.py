@@ -41,12 +41,12 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from .camera import CameraModel
-from .config import RecordingConfig
-from .errors import OutputError
-from .geometry import Pose, angle_between_deg, marker_corners_in_marker
-from .sources.base import Frame
-from .tracker import FrameResult, TargetResult
+from ..camera import CameraModel
+from ..config import RecordingConfig
+from ..errors import OutputError
+from ..geometry import Pose, angle_between_deg, marker_corners_in_marker
+from ..sources.base import Frame
+from ..track.tracker import FrameResult, TargetResult
 
 __all__ = ["RerunRecorder", "default_blueprint"]
 
@@ -479,7 +479,7 @@ class RerunRecorder:
 
 
 def _mesh3d(model: Any) -> rr.Mesh3D:
-    """A :class:`~ar_anchor.models.Model` as flat-shaded ``rr.Mesh3D`` (vertices repeated per face, so
+    """A :class:`~ar_anchor.render.models.Model` as flat-shaded ``rr.Mesh3D`` (vertices repeated per face, so
     each face keeps its own colour and normal)."""
     corners = model.vertices[model.faces]  # (F, 3, 3)
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])

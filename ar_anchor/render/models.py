@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 __all__ = ["BUILTIN_MODELS", "Model", "cube_model", "load_mesh", "pin_model"]
 

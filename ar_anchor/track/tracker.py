@@ -1,7 +1,7 @@
 """One frame's trip through the pipeline: detect -> solve -> filter -> :class:`FrameResult`.
 
 With the filter on (the default), each marker's output pose comes from its
-:class:`~ar_anchor.filtering.TargetTrack` (flip resolved with evidence over time, smoothed,
+:class:`~ar_anchor.track.filtering.TargetTrack` (flip resolved with evidence over time, smoothed,
 predicted through short gaps). With it off (``--no-filter``), the output is the plain per-frame
 lower-error IPPE solution, state ``tracked`` where the frame alone decides the planar flip and
 ``ambiguous`` where it does not.
@@ -18,13 +18,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .camera import CameraModel
-from .config import TrackerConfig
+from ..camera import CameraModel
+from ..config import TrackerConfig
+from ..geometry import Pose, marker_corners_in_marker
+from ..sources.base import Frame
 from .detection import Detector, MarkerDetections, plan_regions
 from .filtering import TargetTrack, decisive, margin_scale
-from .geometry import Pose, marker_corners_in_marker
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
-from .sources.base import Frame
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
 
@@ -310,7 +310,7 @@ class Tracker:
     def _raw_result(self, name: str, solved: MarkerPose | BoardPose, camera: CameraModel) -> TargetResult:
         """``--no-filter``: the lower-error solution as it is; ``tracked`` only when this frame alone
         decides the planar flip (one valid solution, or the other far worse: see
-        :func:`~ar_anchor.filtering.decisive`), else ``ambiguous``."""
+        :func:`~ar_anchor.track.filtering.decisive`), else ``ambiguous``."""
         hypotheses = solved.hypotheses
         sure = len(hypotheses) == 1 or decisive(
             hypotheses[0].reproj_px,
