@@ -24,6 +24,7 @@ import numpy as np
 
 from .boards import layout_from_mapping, read_layout
 from .errors import ConfigError
+from .targets import TargetId, target_pattern_problem
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -145,8 +146,8 @@ class BoardConfig:
         return tuple(range(self.first_id, self.first_id + count))
 
     @property
-    def target(self) -> str:
-        return f"board:{self.name}"
+    def target(self) -> TargetId:
+        return TargetId.board(self.name)
 
     def corners_in_board(self) -> dict[int, np.ndarray]:
         """Each marker's corners (4, 3) in the board frame, TL, TR, BR, BL as the detector orders them."""
@@ -289,12 +290,11 @@ class OverlayConfig:
     opacity: float = 1.0
 
     def matches(self, target: str, board_member: bool) -> bool:
-        if self.target in ("*", target):
-            return True
-        kind = target.partition(":")[0]
-        if self.target == "marker:*":
-            return kind == "marker" and not board_member
-        return self.target == f"{kind}:*"
+        """Does this overlay go on ``target``? (``marker:*`` skips the markers of a board.)"""
+        target = TargetId.parse(target)
+        if self.target == "marker:*" and board_member:
+            return False
+        return target.matches(self.target)
 
 
 def _default_overlays() -> tuple[OverlayConfig, ...]:
@@ -324,8 +324,8 @@ class TrackerConfig:
         exact = tuple(o for o in self.overlays if o.target == target)
         if exact:
             return exact
-        kind, _, ident = target.partition(":")
-        member = kind == "marker" and ident.isdigit() and self.board_of(int(ident)) is not None
+        target = TargetId.parse(target)
+        member = target.marker_id is not None and self.board_of(target.marker_id) is not None
         return tuple(o for o in self.overlays if o.matches(target, member))
 
     def board_of(self, marker_id: int) -> BoardConfig | None:
@@ -707,7 +707,7 @@ def _parse_overlays(root: _Table, path: str, defaults: TrackerConfig) -> tuple[O
     result = []
     for index, raw in enumerate(raw_overlays):
         ov = _Table(raw, f"[[overlays]] #{index + 1}", path)
-        target = ov.take("target", str, "marker:*", _target_problem)
+        target = ov.take("target", str, "marker:*", target_pattern_problem)
         kind = ov.take("kind", str, "cube", lambda v: None if v in OVERLAY_KINDS else f"must be one of {OVERLAY_KINDS}")
         mesh_path = ov.take("path", str, "", _printable)
         if kind == "mesh" and not mesh_path:
@@ -734,17 +734,6 @@ def _parse_overlays(root: _Table, path: str, defaults: TrackerConfig) -> tuple[O
         ov.done()
         result.append(overlay)
     return tuple(result)
-
-
-def _target_problem(value: str) -> str | None:
-    kind, sep, ident = value.partition(":")
-    if value == "*" or (sep and kind in ("marker", "board") and ident == "*"):
-        return None
-    if sep and kind == "marker" and ident.isdigit():
-        return None
-    if sep and kind == "board" and ident:
-        return None
-    return 'must be "marker:<id>", "board:<name>", "marker:*", "board:*" or "*"'
 
 
 def _take_vector(

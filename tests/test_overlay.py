@@ -16,7 +16,7 @@ from ar_anchor.config import OverlayConfig, TrackerConfig, demo_config, load_con
 from ar_anchor.errors import ConfigError
 from ar_anchor.geometry import Pose, look_at
 from ar_anchor.render.models import cube_model, load_mesh, pin_model
-from ar_anchor.render.overlay import OverlayRenderer, anchor_from_target
+from ar_anchor.render.overlay import OverlayRenderer, target_from_anchor
 from ar_anchor.sources.base import Frame
 from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
 from ar_anchor.track.corners import refine_corners_by_edges
@@ -182,7 +182,7 @@ def test_board_anchor_frame_is_centred_with_z_out_of_the_board(camera):
     tracker = Tracker(config, camera)
     outline = tracker.outline("board:desk")
     target = TargetResult("board:desk", "tracked", Pose.identity(), None, 0.0, 1.0, 0.04, outline_in_target=outline)
-    matrix = anchor_from_target(target)
+    matrix = target_from_anchor(target)
     # then the anchor is at the board's centre, z = -z_board (out of it), y = -y_board (up), x = x_board
     np.testing.assert_allclose(matrix[:3, 3], [0.05, 0.05, 0.0], atol=1e-12)
     np.testing.assert_allclose(matrix[:3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-12)
@@ -379,7 +379,7 @@ def test_a_closed_non_planar_board_gets_a_finite_anchor_frame():
     back = front[[1, 0, 3, 2]] - [0.0, 0.0, 0.001]
     outline = np.stack([front, back])
     target = TargetResult("board:sign", "tracked", Pose.identity(), None, 0.0, 1.0, 0.04, outline_in_target=outline)
-    matrix = anchor_from_target(target)
+    matrix = target_from_anchor(target)
     # then the anchor is the board's own axes at its centre, not NaN
     assert np.all(np.isfinite(matrix))
     np.testing.assert_allclose(matrix[:3, :3], np.eye(3))

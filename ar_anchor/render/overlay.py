@@ -7,7 +7,7 @@ property of the whole scene, not of one object.
 How a frame is drawn
 --------------------
 1. Each target with a pose gets its overlays' triangles, placed in the target's *anchor frame*
-   (:func:`anchor_from_target`: centre of the marker or board, x right, y up, z out of it) and
+   (:func:`target_from_anchor`: centre of the marker or board, x right, y up, z out of it) and
    moved into the camera frame by the target's pose (``X_cam = R X_target + t``).
 2. Back-face culling: a triangle whose outward normal points away from the camera (its plane
    does not face the camera centre) is dropped. Triangles reaching behind the near plane too.
@@ -37,10 +37,11 @@ from scipy.spatial.transform import Rotation
 
 from ..camera import CameraModel
 from ..config import OverlayConfig, TrackerConfig
+from ..targets import TrackState
 from ..track.tracker import FrameResult, TargetResult
 from .models import Model, cube_model, load_mesh
 
-__all__ = ["Overlay", "OverlayRenderer", "anchor_from_target", "STATE_STYLE"]
+__all__ = ["Overlay", "OverlayRenderer", "target_from_anchor", "STATE_STYLE"]
 
 _LIGHT = np.array([-0.35, -0.6, -0.72])  # toward the light, camera frame (x right, y down, z forward)
 _LIGHT = _LIGHT / np.linalg.norm(_LIGHT)
@@ -50,7 +51,11 @@ _SHIFT = 4  # fixed-point bits of vertex coordinates passed to OpenCV's fill fun
 _DISTORTED_SUBDIVISIONS = 8
 
 # state -> (opacity factor, saturation kept, label)
-STATE_STYLE = {"tracked": (1.0, 1.0, ""), "ambiguous": (0.5, 1.0, "ambiguous"), "predicted": (0.3, 0.25, "predicted")}
+STATE_STYLE = {
+    TrackState.TRACKED: (1.0, 1.0, ""),
+    TrackState.AMBIGUOUS: (0.5, 1.0, "ambiguous"),
+    TrackState.PREDICTED: (0.3, 0.25, "predicted"),
+}
 
 
 class Overlay(Protocol):
@@ -59,13 +64,13 @@ class Overlay(Protocol):
     def annotate(self, image: np.ndarray, result: FrameResult) -> np.ndarray: ...
 
 
-def anchor_from_target(target: TargetResult) -> np.ndarray:
+def target_from_anchor(target: TargetResult) -> np.ndarray:
     """4x4 ``target_from_anchor``: the anchor frame (centre, x right, y up, z out of the target) in
     the target's own frame. A marker's frame already is one; a board's is found from its marker
     squares (OpenCV's board frames have y down and z into the board)."""
     outline = target.outline_in_target
     matrix = np.eye(4)
-    if outline is None or target.target.startswith("marker:"):
+    if outline is None or not target.target.is_board:
         return matrix
     squares = np.asarray(outline, np.float64).reshape(-1, 4, 3)
     # squares run TL, TR, BR, BL seen from the front: (BL - TL) x (TR - TL) points out of the target
@@ -83,12 +88,12 @@ def anchor_from_target(target: TargetResult) -> np.ndarray:
     return matrix
 
 
-def _target_size(target: TargetResult, target_from_anchor: np.ndarray) -> float:
+def _target_size(target: TargetResult, anchor_in_target: np.ndarray) -> float:
     """A natural object size: a marker's side; a board's smaller in-plane extent."""
-    if target.target.startswith("marker:") or target.outline_in_target is None:
+    if not target.target.is_board or target.outline_in_target is None:
         return float(target.length_m)
-    points = np.asarray(target.outline_in_target, np.float64).reshape(-1, 3) - target_from_anchor[:3, 3]
-    in_anchor = points @ target_from_anchor[:3, :3]
+    points = np.asarray(target.outline_in_target, np.float64).reshape(-1, 3) - anchor_in_target[:3, 3]
+    in_anchor = points @ anchor_in_target[:3, :3]
     extent = in_anchor.max(axis=0) - in_anchor.min(axis=0)
     return float(max(min(extent[0], extent[1]), target.length_m))
 
@@ -135,14 +140,14 @@ class OverlayRenderer:
         key = (target.target, distorted)
         if key in self._placed:
             return self._placed[key]
-        target_from_anchor = anchor_from_target(target)
-        size = _target_size(target, target_from_anchor)
+        anchor_in_target = target_from_anchor(target)
+        size = _target_size(target, anchor_in_target)
         placed = []
         for overlay in self.config.overlays_for(target.target):
             if overlay.kind == "axes":
                 continue
             model = self._model(overlay, size, distorted)
-            matrix = target_from_anchor @ _placement(overlay)
+            matrix = anchor_in_target @ _placement(overlay)
             model = model.transformed(matrix)
             placed.append(_Placed(model, _face_normals(model), overlay.kind == "cube", overlay.opacity))
         self._placed[key] = placed
@@ -166,10 +171,10 @@ class OverlayRenderer:
 
     def _axes_for(self, target: TargetResult) -> list[tuple[np.ndarray, float]]:
         if target.target not in self._axes:
-            target_from_anchor = anchor_from_target(target)
-            size = _target_size(target, target_from_anchor)
+            anchor_in_target = target_from_anchor(target)
+            size = _target_size(target, anchor_in_target)
             self._axes[target.target] = [
-                (target_from_anchor @ _placement(o), o.size_m or size)
+                (anchor_in_target @ _placement(o), o.size_m or size)
                 for o in self.config.overlays_for(target.target)
                 if o.kind == "axes"
             ]
@@ -185,7 +190,7 @@ class OverlayRenderer:
         axes: list[tuple[np.ndarray, float, TargetResult]] = []
         labels: list[tuple[str, TargetResult]] = []
         for target in result.targets.values():
-            style = STATE_STYLE.get(target.state, STATE_STYLE["tracked"])
+            style = STATE_STYLE[target.state]
             for placed in self.models_for(target, camera.has_distortion):
                 facets.extend(_facets(placed, target, camera, style))
             axes.extend((matrix, length, target) for matrix, length in self._axes_for(target))

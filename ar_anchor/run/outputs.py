@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import InputError, OutputError
 from ..geometry import Pose, pose_errors
+from ..targets import TargetId, TrackState
 from ..track.tracker import FrameResult
 
 __all__ = [
@@ -193,7 +194,7 @@ def _percentiles(values: Sequence[float]) -> dict[str, float | None]:
 @dataclass
 class _TargetStats:
     measured: int = 0
-    states: dict[str, int] = field(default_factory=lambda: {"tracked": 0, "ambiguous": 0, "predicted": 0})
+    states: dict[str, int] = field(default_factory=lambda: {str(state): 0 for state in TrackState})
     in_view: int = 0
     measured_in_view: int = 0
     rotation_errors_deg: list[float] = field(default_factory=list)
@@ -244,7 +245,7 @@ class RunSummary:
 
     def as_dict(self, wall_time_s: float, **extra: Any) -> dict[str, Any]:
         targets: dict[str, Any] = {}
-        for name in sorted(self.targets, key=_target_sort_key):
+        for name in TargetId.ordered(self.targets):
             stats = self.targets[name]
             entry: dict[str, Any] = {
                 "frames_measured": stats.measured,
@@ -268,8 +269,3 @@ class RunSummary:
             "targets": targets,
             **extra,
         }
-
-
-def _target_sort_key(name: str) -> tuple[int, int, str]:
-    kind, _, ident = name.partition(":")
-    return (0 if kind == "board" else 1, int(ident) if ident.isdigit() else -1, ident)

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..camera import CameraModel
 from ..geometry import Pose, angle_between_deg, marker_corners_in_marker
+from ..targets import TargetId
 
 __all__ = [
     "BoardPose",
@@ -75,6 +76,10 @@ class MarkerPose:
     solver: str
 
     @property
+    def target(self) -> TargetId:
+        return TargetId.marker(self.marker_id)
+
+    @property
     def best(self) -> PoseHypothesis:
         return self.hypotheses[0]
 
@@ -93,11 +98,11 @@ class PoseFailure:
 
     marker_id: int  # -1 for a board
     reason: str
-    target: str = ""  # "board:<name>" for a board
+    target: TargetId | None = None  # the board's, for a board
 
     def __post_init__(self) -> None:
-        if not self.target:
-            object.__setattr__(self, "target", f"marker:{self.marker_id}")
+        if self.target is None:
+            object.__setattr__(self, "target", TargetId.marker(self.marker_id))
 
 
 def reprojection_rms(
@@ -257,8 +262,8 @@ class BoardPose:
     solver: str
 
     @property
-    def target(self) -> str:
-        return f"board:{self.name}"
+    def target(self) -> TargetId:
+        return TargetId.board(self.name)
 
     @property
     def best(self) -> PoseHypothesis:
@@ -299,6 +304,7 @@ class BoardSolver:
     def __init__(self, board: Any, inlier_px: float = 3.0) -> None:
         self.board = board
         self.name: str = board.name
+        self.target = TargetId.board(board.name)
         self.corners = board.corners_in_board()
         self.planar: bool = board.planar
         self.marker_length_m = min(board.marker_length_of(i) for i in self.corners)  # for drawing
@@ -389,7 +395,7 @@ class BoardSolver:
     # -------------------------------------------------------------- steps
     def _fail(self, reason: str) -> PoseFailure:
         log.debug("board %s: %s", self.name, reason)
-        return PoseFailure(-1, reason, target=f"board:{self.name}")
+        return PoseFailure(-1, reason, target=self.target)
 
     def _candidates(self, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None) -> list[Pose]:
         out = []

@@ -22,15 +22,14 @@ from ..camera import CameraModel
 from ..config import TrackerConfig
 from ..geometry import Pose, marker_corners_in_marker
 from ..sources.base import Frame
+from ..targets import TargetId, TrackState
 from .detection import Detector, MarkerDetections, plan_regions
-from .filtering import TargetTrack, decisive, margin_scale
+from .filtering import TargetTrack, TrackEvent, decisive, margin_scale
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
 
 log = logging.getLogger(__name__)
-
-STATES = ("tracked", "ambiguous", "predicted")
 
 
 @dataclass(frozen=True)
@@ -48,8 +47,8 @@ class TargetResult:
     corners_in_image : (N, 4, 2) corners used this frame.
     """
 
-    target: str
-    state: str
+    target: TargetId
+    state: TrackState
     pose: Pose
     raw: Pose | None
     reproj_px: float
@@ -59,7 +58,7 @@ class TargetResult:
     corners_in_image: np.ndarray | None = None
     branch_poses: tuple[Pose | None, ...] = ()  # this frame's solution on each filter branch
     evidence_px: float = math.nan  # signed flip evidence (+: branch 0), see filtering.py
-    events: tuple[str, ...] = ()  # filter events this frame (commits, switches, re-acquisitions, resets)
+    events: tuple[TrackEvent, ...] = ()  # filter events this frame (commits, switches, re-acquisitions, resets)
     outline_in_target: np.ndarray | None = None  # (K, 4, 3) the target's marker squares, target frame
     markers_used: tuple[int, ...] = ()  # boards: ids of the inlier markers this frame
     outlier_ids: tuple[int, ...] = ()  # boards: markers seen but rejected this frame
@@ -67,12 +66,12 @@ class TargetResult:
     outlier_points_in_image: np.ndarray | None = None  # boards: rejected corners this frame
 
     def __post_init__(self) -> None:
-        if self.state not in STATES:
-            raise ValueError(f"state must be one of {STATES}, got {self.state!r}")
+        object.__setattr__(self, "target", TargetId.parse(self.target))
+        object.__setattr__(self, "state", TrackState(self.state))
 
     @property
     def measured(self) -> bool:
-        return self.state != "predicted"
+        return self.state.measured
 
 
 @dataclass(frozen=True)
@@ -82,7 +81,7 @@ class FrameResult:
     index: int
     timestamp_ns: int
     detections: MarkerDetections
-    targets: dict[str, TargetResult]
+    targets: dict[TargetId, TargetResult]  # in TargetId order
     failures: tuple[PoseFailure, ...] = ()
     latency_ms: dict[str, float] = field(default_factory=dict)
     camera: CameraModel | None = None
@@ -106,7 +105,7 @@ class Tracker:
         self.camera = camera
         self.detector = Detector(config.detector)
         self._cameras: dict[tuple[int, int], CameraModel] = {camera.size: camera}
-        self.tracks: dict[str, TargetTrack] = {}
+        self.tracks: dict[TargetId, TargetTrack] = {}
         self.board_solvers = [BoardSolver(board, config.pose.board_inlier_px) for board in config.boards]
         # ROI tracking state: the last two frames' corners per marker id
         self._last_corners: dict[int, np.ndarray] = {}
@@ -126,17 +125,20 @@ class Tracker:
 
     def reports(self, target: str) -> bool:
         """Does this tracker output poses for ``target`` (``marker:<id>`` / ``board:<name>``)?"""
-        kind, _, ident = target.partition(":")
-        if kind == "board":
-            return any(b.name == ident for b in self.config.boards)
-        return kind == "marker" and ident.isdigit() and self.config.tracks_marker(int(ident))
+        try:
+            target = TargetId.parse(target)
+        except ValueError:
+            return False
+        if target.is_board:
+            return any(b.name == target.name for b in self.config.boards)
+        return self.config.tracks_marker(target.marker_id)
 
     def outline(self, target: str) -> np.ndarray:
         """The target's marker squares (K, 4, 3) in its own frame (for drawing it in 3D)."""
-        kind, _, ident = target.partition(":")
-        if kind == "board":
-            return next(s.outline for s in self.board_solvers if s.name == ident)
-        return marker_corners_in_marker(self.config.marker_length(int(ident)))[None]
+        target = TargetId.parse(target)
+        if target.is_board:
+            return next(s.outline for s in self.board_solvers if s.name == target.name)
+        return marker_corners_in_marker(self.config.marker_length(target.marker_id))[None]
 
     def _detect(self, image: np.ndarray, camera: CameraModel, timestamp_ns: int) -> MarkerDetections:
         """Full-frame detection, or ROI tracking between full-frame searches (``[detector] roi``).
@@ -249,7 +251,7 @@ class Tracker:
                     frame.image, detections, solver.cv_board, camera.camera_matrix, camera.dist_or_none
                 )
         t1 = time.perf_counter()
-        measured: dict[str, MarkerPose | BoardPose] = {}
+        measured: dict[TargetId, MarkerPose | BoardPose] = {}
         failures: list[PoseFailure] = []
         for marker_id, corners in zip(detections.ids.tolist(), detections.corners):
             if not self.config.tracks_marker(marker_id):
@@ -260,7 +262,7 @@ class Tracker:
             if isinstance(solved, PoseFailure):
                 failures.append(solved)
                 continue
-            measured[f"marker:{marker_id}"] = solved
+            measured[solved.target] = solved
         for solver in self.board_solvers:
             board = solver.solve(
                 detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, image=frame.image
@@ -273,16 +275,16 @@ class Tracker:
         if self.config.filter.enabled:
             targets = self._filter(measured, frame.timestamp_ns, camera, blurred)
         else:
-            targets = {name: self._raw_result(name, solved, camera) for name, solved in measured.items()}
+            targets = {name: self._raw_result(name, measured[name], camera) for name in TargetId.ordered(measured)}
         t3 = time.perf_counter()
         latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
         return FrameResult(frame.index, frame.timestamp_ns, detections, targets, tuple(failures), latency, camera)
 
     def _filter(
-        self, measured: dict[str, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
-    ) -> dict[str, TargetResult]:
-        targets: dict[str, TargetResult] = {}
-        for name in sorted(set(measured) | set(self.tracks), key=_target_order):
+        self, measured: dict[TargetId, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
+    ) -> dict[TargetId, TargetResult]:
+        targets: dict[TargetId, TargetResult] = {}
+        for name in TargetId.ordered(set(measured) | set(self.tracks)):
             solved = measured.get(name)
             track = self.tracks.get(name)
             if track is None:
@@ -303,11 +305,11 @@ class Tracker:
                 camera,
                 branch_poses=update.hypotheses,
                 evidence_px=update.evidence,
-                events=tuple(f"{e.kind}: {e.message}" for e in update.events),
+                events=tuple(update.events),
             )
         return targets
 
-    def _raw_result(self, name: str, solved: MarkerPose | BoardPose, camera: CameraModel) -> TargetResult:
+    def _raw_result(self, name: TargetId, solved: MarkerPose | BoardPose, camera: CameraModel) -> TargetResult:
         """``--no-filter``: the lower-error solution as it is; ``tracked`` only when this frame alone
         decides the planar flip (one valid solution, or the other far worse: see
         :func:`~ar_anchor.track.filtering.decisive`), else ``ambiguous``."""
@@ -319,16 +321,24 @@ class Tracker:
             max(self.config.filter.corner_noise_px, hypotheses[0].reproj_px * math.sqrt(2.0)),
             margin_scale(len(solved.points_in_target)),
         )
-        return self._result(name, "tracked" if sure else "ambiguous", solved.best.pose, solved, camera)
+        return self._result(
+            name, TrackState.TRACKED if sure else TrackState.AMBIGUOUS, solved.best.pose, solved, camera
+        )
 
     def _result(
-        self, name: str, state: str, pose: Pose, solved: MarkerPose | BoardPose | None, camera: CameraModel, **extra
+        self,
+        name: TargetId,
+        state: TrackState,
+        pose: Pose,
+        solved: MarkerPose | BoardPose | None,
+        camera: CameraModel,
+        **extra,
     ) -> TargetResult:
-        board = isinstance(solved, BoardPose) or name.startswith("board:")
-        if name.startswith("marker:"):
-            length = self.config.marker_length(int(name.split(":")[1]))
+        board = isinstance(solved, BoardPose) or name.is_board
+        if not name.is_board:
+            length = self.config.marker_length(name.marker_id)
         else:
-            length = next(s.marker_length_m for s in self.board_solvers if f"board:{s.name}" == name)
+            length = next(s.marker_length_m for s in self.board_solvers if s.target == name)
         if solved is None:
             return TargetResult(
                 target=name,
@@ -378,11 +388,6 @@ def _same_corners(now: MarkerDetections, before: MarkerDetections) -> bool:
     return all(
         int(i) in where and float(np.abs(c - where[int(i)]).max()) < _REPEAT_PX for i, c in zip(now.ids, now.corners)
     )
-
-
-def _target_order(name: str) -> tuple[str, int, str]:
-    kind, _, ident = name.partition(":")
-    return kind, int(ident) if ident.isdigit() else -1, ident
 
 
 def _finite_or_nan(value: float) -> float:

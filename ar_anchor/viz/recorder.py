@@ -46,13 +46,18 @@ from ..config import RecordingConfig
 from ..errors import OutputError
 from ..geometry import Pose, angle_between_deg, marker_corners_in_marker
 from ..sources.base import Frame
+from ..targets import TargetId, TrackState
 from ..track.tracker import FrameResult, TargetResult
 
 __all__ = ["RerunRecorder", "default_blueprint"]
 
 log = logging.getLogger(__name__)
 
-_STATE_COLOURS = {"tracked": (40, 220, 80), "ambiguous": (250, 190, 30), "predicted": (120, 120, 255)}
+_STATE_COLOURS = {
+    TrackState.TRACKED: (40, 220, 80),
+    TrackState.AMBIGUOUS: (250, 190, 30),
+    TrackState.PREDICTED: (120, 120, 255),
+}
 _FAILED_COLOUR = (255, 60, 60)
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
@@ -60,7 +65,7 @@ _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they 
 
 def entity_name(target: str) -> str:
     """``marker:3`` -> ``marker_3`` (a single entity path part)."""
-    return target.replace(":", "_")
+    return TargetId.parse(target).path_part
 
 
 def default_blueprint() -> rrb.Blueprint:
@@ -350,7 +355,7 @@ class RerunRecorder:
         strips, colours, labels = [], [], []
         failed = {f.marker_id for f in result.failures}
         for marker_id, corners in zip(result.detections.ids.tolist(), result.detections.corners):
-            target = result.targets.get(f"marker:{marker_id}")
+            target = result.targets.get(TargetId.marker(marker_id))
             colour = (
                 _STATE_COLOURS[target.state] if target else (_FAILED_COLOUR if marker_id in failed else (160, 160, 160))
             )
@@ -361,7 +366,7 @@ class RerunRecorder:
         corners = result.detections.corners.reshape(-1, 2)
         self.rec.log("camera/image/corners", rr.Points2D(to_rerun(corners), radii=[1.5], colors=[(255, 0, 255)]))
         for name, target in result.targets.items():
-            if not name.startswith("board:"):
+            if not name.is_board:
                 continue
             path = f"camera/image/boards/{entity_name(name)}"
             inliers = (
@@ -377,15 +382,11 @@ class RerunRecorder:
         """The first target seen (boards first) anchors the 3D view, for the whole run; its static shape
         is logged once per recording part."""
         if self.anchor is None and result.targets:
-            self.anchor = sorted(result.targets, key=lambda n: (not n.startswith("board:"), len(n), n))[0]
+            self.anchor = TargetId.ordered(result.targets)[0]
             log.info("rerun 3D view anchored on %s", self.anchor)
         if self.anchor is None or self.anchor in self._static_targets or self.anchor not in result.targets:
             return
-        up = (
-            rr.ViewCoordinates.RIGHT_HAND_Y_DOWN
-            if self.anchor.startswith("board:")
-            else rr.ViewCoordinates.RIGHT_HAND_Y_UP
-        )
+        up = rr.ViewCoordinates.RIGHT_HAND_Y_DOWN if self.anchor.is_board else rr.ViewCoordinates.RIGHT_HAND_Y_UP
         self.rec.log("world", up, static=True)
         self._log_static_target(self.anchor, result.targets[self.anchor], is_anchor=True)
         self._static_targets.add(self.anchor)
@@ -399,7 +400,7 @@ class RerunRecorder:
                 rec.log(f"metrics/reproj_px/{part}", rr.Scalars(target.reproj_px))
             if math.isfinite(target.ambiguity):
                 rec.log(f"metrics/ambiguity/{part}", rr.Scalars(target.ambiguity))
-            if name.startswith("board:") and target.measured:
+            if name.is_board and target.measured:
                 rec.log(f"metrics/inliers/{part}", rr.Scalars(float(target.inliers)))
             if math.isfinite(target.evidence_px):
                 rec.log(f"metrics/flip_evidence_px/{part}", rr.Scalars(target.evidence_px))
@@ -408,8 +409,8 @@ class RerunRecorder:
                 self._states[name] = target.state
                 rec.log("events", rr.TextLog(f"{name}: state {previous_state or '-'} -> {target.state}", level="INFO"))
             for event in target.events:
-                level = "WARN" if event.startswith(("switch", "uncommit")) else "INFO"
-                rec.log("events", rr.TextLog(f"{name}: {event}", level=level))
+                level = "WARN" if event.kind in ("switch", "uncommit") else "INFO"
+                rec.log("events", rr.TextLog(f"{name}: {event.kind}: {event.message}", level=level))
             if truth is not None and name in truth:
                 error = angle_between_deg(target.pose.rotation, truth[name].rotation)
                 rec.log(f"metrics/rotation_error_deg/{part}", rr.Scalars(error))
