@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import ar_anchor.bench.stability as bench
+import ar_anchor.bench.stability.report as stability_report
 from ar_anchor.bench.stability import (
     DECISIVE_MARGIN_PX,
     DECISIVE_RATIO,
@@ -23,6 +23,7 @@ from ar_anchor.bench.stability import (
     predicted_error_stats,
     run_scenario,
     stability_scenarios,
+    write_stability_report,
     wrong_tracked,
 )
 from ar_anchor.camera import CameraModel
@@ -183,8 +184,8 @@ def test_a_tiny_handheld_scenario_end_to_end(tmp_path, monkeypatch):
     assert result["tracker"]["frames"] > 20
     json.dumps(result)  # JSON-ready
     # and the report writer runs it and shows the acceptance table with a pass column
-    monkeypatch.setattr(bench, "stability_scenarios", lambda quick: [scenario])
-    results = bench.write_stability_report(tmp_path, quick=True, command="test bench stability")
+    monkeypatch.setattr(stability_report, "stability_scenarios", lambda quick: [scenario])
+    results = write_stability_report(tmp_path, quick=True, command="test bench stability")
     text = (tmp_path / "stability.md").read_text()
     assert "| pass |" in text and "tiny" in text and "longest stretch" in text
     saved = json.loads((tmp_path / "stability.json").read_text())

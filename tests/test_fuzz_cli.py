@@ -106,6 +106,8 @@ def _no_display(monkeypatch):
 @pytest.fixture
 def stub_benchmarks(monkeypatch):
     """bench's report writers, replaced: they record their arguments and write tiny reports."""
+    import ar_anchor.bench.boards as bench_boards
+    import ar_anchor.bench.overlay as bench_overlay
     import ar_anchor.bench.speed as bench_speed
     import ar_anchor.bench.stability as bench
 
@@ -121,8 +123,8 @@ def stub_benchmarks(monkeypatch):
 
     for module, name in [
         (bench, "write_stability_report"),
-        (bench, "write_board_report"),
-        (bench, "write_overlay_report"),
+        (bench_boards, "write_board_report"),
+        (bench_overlay, "write_overlay_report"),
         (bench_speed, "write_speed_report"),
     ]:
         monkeypatch.setattr(module, name, stub(name))
@@ -487,7 +489,7 @@ def test_live_connect_to_a_malformed_url_is_a_usage_error(workspace):
 
 def test_bench_out_that_is_a_file_is_a_clean_error(workspace, monkeypatch):
     # the real report writer, on an empty scenario list (the minutes-long grid is not what is tested)
-    import ar_anchor.bench.stability as bench
+    import ar_anchor.bench.stability.report as bench
 
     monkeypatch.setattr(bench, "stability_scenarios", lambda quick: [])
     with inside(workspace):

@@ -666,7 +666,9 @@ def cmd_live(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from ..bench.stability import write_board_report, write_overlay_report, write_stability_report
+    from ..bench.boards import write_board_report
+    from ..bench.overlay import write_overlay_report
+    from ..bench.stability import write_stability_report
     from ..config import load_config
     from ..run.outputs import prepare_out_dir
 

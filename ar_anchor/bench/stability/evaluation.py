@@ -1,0 +1,248 @@
+"""One tracked scenario scored: both pipelines' metrics per target and pooled over the targets, the
+worst target, the rigid sheet's consistency, and the acceptance (``ACCEPTANCE``)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ...config import TrackerConfig
+from ...geometry import pose_errors
+from ..report import FLIP_DEG
+from .metrics import (
+    ambiguous_vs_raw,
+    longest_stretch,
+    predicted_error_stats,
+    rotation_errors,
+    series_metrics,
+    wrong_tracked,
+)
+from .run import ScenarioRun, TargetSeries
+from .scenarios import scenario_dict
+
+__all__ = ["ACCEPTANCE", "acceptance", "evaluate"]
+
+# The acceptance of issue 16 (checked per target; a metric with no data passes).
+ACCEPTANCE = {
+    "wrong_excess_points": 0.2,  # tracker wrong-frame rate <= raw + this (percentage points)
+    "wrong_tracked": 0,
+    "twitches": 0,
+    "longest_stretch": 3,
+    "predicted_median_deg": 3.0,
+    "predicted_p95_deg": 10.0,
+}
+
+
+def _target_metrics(series: TargetSeries, moving: bool) -> dict[str, Any]:
+    """Both pipelines' metrics on one target."""
+    raw = series_metrics(series.raw, series.truth, moving)
+    trk = series_metrics(series.output, series.truth, moving)
+    raw["longest_stretch"] = 0  # the raw pick is the measurement itself
+    raw_errors = rotation_errors(series.raw, series.truth)
+    decisive = np.array(series.decisive, dtype=bool)
+    measured = np.array([r is not None for r in series.raw], dtype=bool)
+    raw["decisive_pct"] = 100.0 * float(decisive.sum()) / max(int(measured.sum()), 1)
+    raw["decisive_wrong"] = int(np.sum(decisive & (np.nan_to_num(raw_errors, nan=0.0) > FLIP_DEG)))
+    trk["longest_stretch"] = longest_stretch(series.output, series.raw, series.decisive)
+    trk["ignored_run"] = longest_stretch(series.output, series.raw, series.decisive, gaps_end=False)
+    trk.update(wrong_tracked(series.output, series.truth, series.state))
+    trk.update(predicted_error_stats(series.output, series.truth, series.state))
+    trk.update(ambiguous_vs_raw(series.output, series.raw, series.truth, series.state))
+    states = [s for s in series.state if s]
+    first_output = next((i for i, s in enumerate(series.state) if s), None)
+    first_tracked = next((i for i, s in enumerate(series.state) if s == "tracked"), None)
+    trk.update(
+        {
+            "tracked_pct": 100.0 * states.count("tracked") / len(states) if states else 0.0,
+            "ambiguous_pct": 100.0 * states.count("ambiguous") / len(states) if states else 0.0,
+            "predicted_pct": 100.0 * states.count("predicted") / len(states) if states else 0.0,
+            "frames_to_commit": None if first_tracked is None or first_output is None else first_tracked - first_output,
+        }
+    )
+    return {"raw": raw, "tracker": trk}
+
+
+def _pooled(run: ScenarioRun, per_target: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Both pipelines' metrics pooled over the targets: error statistics over all (target, frame)
+    pairs, counts summed, stretches and lags the maximum, jitter the RMS."""
+    moving = run.scenario.moving
+    series = list(run.targets.values())
+    if len(series) == 1:
+        return {k: dict(v) for k, v in next(iter(per_target.values())).items()}
+
+    def cat(attr: str) -> list:
+        return [x for s in series for x in getattr(s, attr)]
+
+    pooled: dict[str, dict[str, Any]] = {}
+    for pipeline, attr in (("raw", "raw"), ("tracker", "output")):
+        poses, truth = cat(attr), cat("truth")
+        pairs = [(p, t) for p, t in zip(poses, truth) if p is not None and t is not None]
+        out: dict[str, Any] = {"frames": len(pairs)}
+        if pairs:
+            rot, trans = np.array([pose_errors(p, t) for p, t in pairs]).T
+            out.update(
+                {
+                    "wrong_frames": int(np.sum(rot > FLIP_DEG)),
+                    "flipped_pct": 100.0 * float(np.mean(rot > FLIP_DEG)),
+                    "rot_median_deg": float(np.median(rot)),
+                    "rot_p95_deg": float(np.percentile(rot, 95)),
+                    "trans_median_pct": float(np.median(trans)),
+                }
+            )
+        rows = [m[pipeline] for m in per_target.values()]
+        for key in ("twitches", "decisive_wrong", "wrong_tracked", "ambiguous_wrong", "ambiguous_raw_wrong"):
+            if key in rows[0]:
+                out[key] = int(sum(r.get(key, 0) for r in rows))
+        for key in ("longest_stretch", "ignored_run", "lag_frames", "frames_to_commit"):
+            values = [r[key] for r in rows if r.get(key) is not None]
+            if values:
+                out[key] = max(values)
+        jitters = [r["jitter_deg"] for r in rows if "jitter_deg" in r]
+        if jitters and not moving:
+            out["jitter_deg"] = float(np.sqrt(np.mean(np.square(jitters))))
+        if pipeline == "raw":
+            decisive = np.array(cat("decisive"), dtype=bool)
+            out["decisive_pct"] = 100.0 * float(decisive.sum()) / max(sum(p is not None for p in poses), 1)
+        else:
+            out.update(wrong_tracked(poses, truth, cat("state")))
+            out.update(predicted_error_stats(poses, truth, cat("state")))
+            states = [s for s in cat("state") if s]
+            for name in ("tracked", "ambiguous", "predicted"):
+                out[f"{name}_pct"] = 100.0 * states.count(name) / len(states) if states else 0.0
+        pooled[pipeline] = out
+    return pooled
+
+
+def _worst(per_target: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The worst target of each acceptance metric (name and value)."""
+    worst: dict[str, Any] = {}
+
+    def pick(key: str, value_of: Callable[[dict[str, Any]], float | None]) -> None:
+        values = [(value_of(m), name) for name, m in per_target.items()]
+        values = [(v, n) for v, n in values if v is not None]
+        if values:
+            value, name = max(values)
+            worst[key] = {"target": name, "value": value}
+
+    pick("wrong_excess_points", lambda m: m["tracker"].get("flipped_pct", 0.0) - m["raw"].get("flipped_pct", 0.0))
+    pick("tracker_flipped_pct", lambda m: m["tracker"].get("flipped_pct"))
+    pick("raw_flipped_pct", lambda m: m["raw"].get("flipped_pct"))
+    pick("wrong_tracked", lambda m: m["tracker"].get("wrong_tracked"))
+    pick("twitches", lambda m: m["tracker"].get("twitches"))
+    pick("longest_stretch", lambda m: m["tracker"].get("longest_stretch"))
+    pick("predicted_median_deg", lambda m: m["tracker"].get("predicted_median_deg"))
+    pick("predicted_p95_deg", lambda m: m["tracker"].get("predicted_p95_deg"))
+    return worst
+
+
+def _sheet_disagreement(run: ScenarioRun) -> dict[str, Any] | None:
+    """Rigid-sheet consistency: % of frames (with >= 2 outputs) where two markers of the sheet are more
+    than 10 deg apart in rotation (they share one true rotation), per pipeline."""
+    if not run.scenario.sheet or len(run.targets) < 2:
+        return None
+    out = {}
+    series = list(run.targets.values())
+    for pipeline, attr in (("raw", "raw"), ("tracker", "output")):
+        frames = disagree = 0
+        for poses in zip(*(getattr(s, attr) for s in series)):
+            rotations = [p.rotation for p in poses if p is not None]
+            if len(rotations) < 2:
+                continue
+            frames += 1
+            stacked = np.array(rotations)
+            # pairwise angle via trace(Ra^T Rb) for all pairs at once
+            traces = np.einsum("aji,bji->ab", stacked, stacked)
+            angles = np.degrees(np.arccos(np.clip((traces - 1.0) / 2.0, -1.0, 1.0)))
+            disagree += int(angles.max() > FLIP_DEG)
+        out[pipeline] = {"frames": frames, "disagree_pct": 100.0 * disagree / frames if frames else 0.0}
+    return out
+
+
+def acceptance(result: dict[str, Any]) -> dict[str, Any]:
+    """The issue-16 acceptance on one evaluated scenario: ``{"pass": bool, "failed": [reasons]}``.
+
+    Checked on every target; one reason per failed criterion, with the worst value, its target and
+    how many targets fail it. A metric without data (no predicted rows) passes. Also fails when ROI
+    tracking found fewer markers than full-frame detection on the same frames."""
+    targets = result.get("targets") or {"": {"raw": result["raw"], "tracker": result["tracker"]}}
+    limits = ACCEPTANCE
+    checks: list[tuple[str, Callable[[dict, dict], float | None], float, str]] = [
+        ("wrong", lambda r, t: t.get("flipped_pct", 0.0) - r.get("flipped_pct", 0.0),
+         limits["wrong_excess_points"] + 1e-9, "wrong +{:.1f} points over raw"),
+        ("wrong tracked", lambda r, t: t.get("wrong_tracked", 0), limits["wrong_tracked"], "{:.0f} wrong tracked"),
+        ("twitches", lambda r, t: t.get("twitches", 0), limits["twitches"], "{:.0f} twitches"),
+        ("stretch", lambda r, t: t.get("longest_stretch", 0), limits["longest_stretch"], "stretch {:.0f}"),
+        ("predicted median", lambda r, t: t.get("predicted_median_deg"), limits["predicted_median_deg"],
+         "predicted median {:.1f} deg"),
+        ("predicted p95", lambda r, t: t.get("predicted_p95_deg"), limits["predicted_p95_deg"],
+         "predicted p95 {:.1f} deg"),
+    ]  # fmt: skip
+    failed = []
+    for _, value_of, limit, text in checks:
+        bad = []
+        for name, m in targets.items():
+            value = value_of(m["raw"], m["tracker"])
+            if value is not None and value > limit:
+                bad.append((value, name))
+        if bad:
+            value, name = max(bad)
+            count = f", {len(bad)} of {len(targets)} targets)" if len(targets) > 1 else ")"
+            where = f" ({name}{count}" if name else ""
+            failed.append(text.format(value) + where)
+    for name, m in targets.items():  # ambiguous rows at least as good as the raw per-frame pick
+        trk = m["tracker"]
+        if trk.get("ambiguous_wrong", 0) > trk.get("ambiguous_raw_wrong", 0):
+            failed.append(
+                f"ambiguous rows {trk['ambiguous_wrong']} wrong vs raw {trk['ambiguous_raw_wrong']}"
+                + (f" ({name})" if name else "")
+            )
+            break
+    if result.get("roi_missed"):  # ROI tracking may never find fewer markers than full-frame detection
+        failed.append(f"ROI tracking missed {result['roi_missed']} marker-frames full-frame detection found")
+    return {"pass": not failed, "failed": failed}
+
+
+def evaluate(run: ScenarioRun, config: TrackerConfig | None = None) -> dict[str, Any]:
+    """Metrics of the raw pipeline and of the tracker on one scenario.
+
+    ``raw`` / ``tracker``: pooled over the targets (for one target: that target's); ``targets``:
+    per target; ``worst``: the worst target per acceptance metric; ``acceptance``: pass/fail."""
+    config = config or TrackerConfig()
+    moving = run.scenario.moving
+    per_target = {name: _target_metrics(series, moving) for name, series in run.targets.items()}
+    pooled = _pooled(run, per_target)
+    result: dict[str, Any] = {
+        "scenario": scenario_dict(run.scenario),
+        "raw": pooled["raw"],
+        "tracker": pooled["tracker"],
+        "targets": per_target,
+        "worst": _worst(per_target),
+    }
+    result["tracker"]["track_ms_median"] = float(np.median(run.track_ms)) if run.track_ms else None
+    result["full_frame_found"] = run.full_frame_found
+    result["roi_missed"] = run.roi_missed
+    result["render_s"] = run.render_s
+    result["track_s"] = run.track_s
+    series = list(run.targets.values())
+    raw_all = [p for s in series for p in s.raw]
+    result["detected_pct"] = 100.0 * sum(p is not None for p in raw_all) / max(len(raw_all), 1)
+    deltas = np.array([d for s in series for d in s.delta_px if math.isfinite(d)])
+    result["delta_median_px"] = float(np.median(deltas)) if deltas.size else None
+    result["delta_p90_px"] = float(np.percentile(deltas, 90)) if deltas.size else None
+    # decidable: the wrong solution at some point reprojects worse than the margin, or fails validation
+    # outright (then there is only one solution: no delta at all)
+    measured = [d for s in series for d, st in zip(s.delta_px, s.state) if st and st != "predicted"]
+    single = sum(1 for d in measured if not math.isfinite(d))
+    result["decidable"] = bool(
+        deltas.size == 0
+        or np.percentile(deltas, 90) > config.filter.decide_margin_px
+        or single > 0.1 * max(len(measured), 1)
+    )
+    sheet = _sheet_disagreement(run)
+    if sheet is not None:
+        result["sheet"] = sheet
+    result["acceptance"] = acceptance(result)
+    return result

@@ -1,0 +1,191 @@
+"""``stability.md`` and ``stability.json``: the grid run, and its acceptance and detail tables."""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from ...camera import CameraModel
+from ...config import TrackerConfig
+from ..report import fmt
+from .evaluation import ACCEPTANCE, acceptance, evaluate
+from .metrics import DECISIVE_MARGIN_PX, DECISIVE_RATIO
+from .run import run_scenario
+from .scenarios import Scenario, stability_scenarios
+
+__all__ = ["acceptance_table", "stability_markdown", "stability_table", "write_stability_report"]
+
+
+def stability_table(results: list[dict[str, Any]]) -> str:
+    """Markdown table: raw vs tracker per scenario (pooled over the scenario's targets)."""
+    header = (
+        "| scenario | det % | Δ median px | flipped % raw / trk | rot med deg raw / trk | rot p95 deg raw / trk "
+        "| trans med % raw / trk | jitter deg raw / trk | lag frames raw / trk | twitches raw / trk "
+        "| tracked / ambiguous / predicted % | wrong tracked % | frames to commit |"
+    )
+    lines = [header, "|" + "|".join(["---"] * 13) + "|"]
+    for r in results:
+        raw, trk = r["raw"], r["tracker"]
+
+        def pair(key: str, digits: int = 2, raw: dict = raw, trk: dict = trk) -> str:
+            return f"{fmt(raw.get(key), digits)} / {fmt(trk.get(key), digits)}"
+
+        states = " / ".join(fmt(trk.get(k), 0) for k in ("tracked_pct", "ambiguous_pct", "predicted_pct"))
+        name = r["scenario"]["name"] + ("" if r["decidable"] else " (undecidable)")
+        lines.append(
+            f"| {name} | {fmt(r['detected_pct'], 0)} | {fmt(r['delta_median_px'], 3)} | {pair('flipped_pct', 1)} "
+            f"| {pair('rot_median_deg')} | {pair('rot_p95_deg', 1)} | {pair('trans_median_pct')} "
+            f"| {pair('jitter_deg', 3)} | {pair('lag_frames', 0)} | {pair('twitches', 0)} "
+            f"| {states} "
+            f"| {fmt(trk.get('wrong_tracked_pct'), 1)} | {fmt(trk.get('frames_to_commit'), 0)} |"
+        )
+    return "\n".join(lines)
+
+
+def acceptance_table(results: list[dict[str, Any]]) -> str:
+    """Markdown table of the issue-16 acceptance metrics, with the pass/fail column."""
+    header = (
+        "| scenario | targets | wrong % raw / trk | worst target wrong % raw / trk | wrong tracked n (%) "
+        "| twitches raw / trk | longest stretch (gap-tolerant) | decisive % (wrong n) | predicted n, med / p95 deg "
+        "| ambiguous rows wrong trk / raw | sheet disagree % raw / trk | found by full frame / missed with ROI "
+        "| pass |"
+    )
+    lines = [header, "|" + "|".join(["---"] * 13) + "|"]
+    for r in results:
+        raw, trk, worst = r["raw"], r["tracker"], r.get("worst", {})
+        targets = r.get("targets") or {}
+        worst_name = (worst.get("wrong_excess_points") or {}).get("target")
+        if worst_name in targets and len(targets) > 1:
+            w = targets[worst_name]
+            worst_cell = (
+                f"{worst_name}: {fmt(w['raw'].get('flipped_pct'), 1)} / {fmt(w['tracker'].get('flipped_pct'), 1)}"
+            )
+        else:
+            worst_cell = "-"
+        sheet = r.get("sheet")
+        sheet_cell = (
+            f"{fmt(sheet['raw']['disagree_pct'], 1)} / {fmt(sheet['tracker']['disagree_pct'], 1)}" if sheet else "-"
+        )
+        verdict = r.get("acceptance") or acceptance(r)
+        pass_cell = "pass" if verdict["pass"] else "FAIL: " + "; ".join(verdict["failed"])
+        lines.append(
+            f"| {r['scenario']['name']} | {len(targets) or 1} "
+            f"| {fmt(raw.get('flipped_pct'), 1)} / {fmt(trk.get('flipped_pct'), 1)} | {worst_cell} "
+            f"| {fmt(trk.get('wrong_tracked'), 0)} ({fmt(trk.get('wrong_tracked_pct'), 1)}) "
+            f"| {fmt(raw.get('twitches'), 0)} / {fmt(trk.get('twitches'), 0)} "
+            f"| {fmt(trk.get('longest_stretch'), 0)} ({fmt(trk.get('ignored_run'), 0)}) "
+            f"| {fmt(raw.get('decisive_pct'), 0)} ({fmt(raw.get('decisive_wrong'), 0)}) "
+            f"| {fmt(trk.get('predicted_frames'), 0)}, {fmt(trk.get('predicted_median_deg'), 1)} / "
+            f"{fmt(trk.get('predicted_p95_deg'), 1)} "
+            f"| {fmt(trk.get('ambiguous_wrong'), 0)} / {fmt(trk.get('ambiguous_raw_wrong'), 0)} | {sheet_cell} "
+            f"| {fmt(r.get('full_frame_found'), 0)} / {fmt(r.get('roi_missed'), 0)} | {pass_cell} |"
+        )
+    return "\n".join(lines)
+
+
+def write_stability_report(
+    out_dir: Path,
+    *,
+    quick: bool = False,
+    config: TrackerConfig | None = None,
+    camera: CameraModel | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+    command: str = "ar-anchor bench stability",
+) -> list[dict[str, Any]]:
+    """Run the grid, write ``stability.md`` and ``stability.json`` to ``out_dir``, return the results."""
+    config = config or TrackerConfig()
+    camera = camera or CameraModel.default_synthetic()
+    scenarios = stability_scenarios(quick)
+    start = time.perf_counter()
+    results = _run_grid(scenarios, config, camera, progress)
+    wall = time.perf_counter() - start
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meta = _meta(results, scenarios, camera, command, wall)
+    (out_dir / "stability.json").write_text(json.dumps({"meta": meta, "results": results}, indent=2) + "\n")
+    (out_dir / "stability.md").write_text(stability_markdown(results, meta))
+    return results
+
+
+def _run_grid(
+    scenarios: Sequence[Scenario],
+    config: TrackerConfig,
+    camera: CameraModel,
+    progress: Callable[[int, int, str], None] | None,
+) -> list[dict[str, Any]]:
+    """Each scenario run and evaluated, with its wall time (``wall_s``)."""
+    results = []
+    for i, scenario in enumerate(scenarios):
+        if progress is not None:
+            progress(i, len(scenarios), scenario.name)
+        scenario_start = time.perf_counter()
+        result = evaluate(run_scenario(scenario, config, camera), config)
+        result["wall_s"] = time.perf_counter() - scenario_start
+        results.append(result)
+    return results
+
+
+def _meta(
+    results: Sequence[dict[str, Any]], scenarios: Sequence[Scenario], camera: CameraModel, command: str, wall: float
+) -> dict[str, Any]:
+    return {
+        "command": command,
+        "wall_time_s": wall,
+        "camera": f"{camera.width}x{camera.height} fx={camera.camera_matrix[0, 0]:g}",
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "frames_per_scenario": next((s.frames for s in scenarios if s.motion != "handheld"), None),
+        "decisive": {"ratio": DECISIVE_RATIO, "margin_px": DECISIVE_MARGIN_PX},
+        "acceptance": ACCEPTANCE,
+        "passed": sum(1 for r in results if r["acceptance"]["pass"]),
+        "scenarios": len(results),
+    }
+
+
+def stability_markdown(results: list[dict[str, Any]], meta: dict[str, Any]) -> str:
+    """The report: the acceptance table (hand-held scenarios first), then the per-scenario detail."""
+    handheld = [r for r in results if r["scenario"]["motion"] == "handheld"]
+    calm = [r for r in results if r["scenario"]["motion"] != "handheld"]
+    text = [
+        "# Stability benchmark: raw per-frame IPPE vs. the tracker",
+        "",
+        f"Produced by `{meta['command']}` in {meta['wall_time_s']:.0f} s. Calm scenarios: {meta['camera']}, 30 fps, "
+        f"{fmt(meta['frames_per_scenario'])} frames per scenario, sensor noise 2 grey levels unless stated, blur "
+        "0.6 px. Hand-held scenarios (`hh ...`): webcam-like cameras (640x480 or 720p), the camera's own frame rate "
+        "and clip length, motion blur over the exposure, rolling shutter, compression, lighting drift, tremor and "
+        "quick turns (see `ar_anchor/bench/stability/scenarios.py`); `sheet6` is a rigid sheet of six markers, each "
+        "scored on its own truth and pooled.",
+        "",
+        f"## Acceptance ({meta['passed']} of {meta['scenarios']} scenarios pass)",
+        "",
+        "Per target: tracker wrong-frame rate <= raw + 0.2 points, 0 wrong tracked frames, 0 twitches, longest "
+        "stretch <= 3, predicted rows' rotation error median <= 3 deg and p95 <= 10 deg. *wrong*: rotation error "
+        "> 10 deg (pooled over the targets; *worst target*: the one whose tracker exceeds its raw rate most). "
+        "*longest stretch*: consecutive frames whose output is > 10 deg from a decisive raw measurement (the only "
+        f"valid IPPE solution, or the other reprojects >= {DECISIVE_RATIO:g}x and >= {DECISIVE_MARGIN_PX:g} px "
+        "worse); in brackets the gap-tolerant run (frames without a decisive measurement skipped). *decisive %*: "
+        "frames whose raw measurement is decisive, with how many of those are themselves wrong. *ambiguous rows*: "
+        "frames output as `ambiguous` more than 10 deg off, for the output and for the raw pick on the same rows "
+        "(the output must be at least as good). *sheet disagree*: frames where two markers of the rigid sheet are "
+        "> 10 deg apart. *found by full frame / missed with ROI*: marker-frames a full-frame search finds on the "
+        "same frames, and how many of those ROI tracking (on by default) did not find (must be 0).",
+        "",
+        acceptance_table(handheld + calm),
+        "",
+        "## Per-scenario detail",
+        "",
+        "*flipped*: frames whose rotation error exceeds 10 deg. *Δ*: how much worse the wrong IPPE solution "
+        "reprojects (px, median over frames); a scenario is *undecidable* when even its 90th percentile stays "
+        "below the filter's decision margin (corner-detector bias level), so no amount of evidence can decide: "
+        "the tracker then says `ambiguous` and holds its best guess. *jitter*: RMS orientation around the mean "
+        "(static scenes, after the first second, for both pipelines). *lag*: shift in frames that best aligns "
+        "output with truth (moving scenes). "
+        "*twitches*: consecutive outputs more than 10 deg apart with less than 1 cm of motion.",
+        "",
+        stability_table(results),
+        "",
+    ]
+    return "\n".join(text)
