@@ -19,8 +19,6 @@ user would start it (default settings unless stated):
 from __future__ import annotations
 
 import json
-import math
-import os
 import signal
 import subprocess
 import sys
@@ -33,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from ..camera import CameraModel
-from .speed import _machine, render_clip, speed_scene
+from .report import fmt, load_average, machine_info
+from .speed import render_clip, speed_scene
 
 __all__ = ["run_run_benchmark", "write_run_report"]
 
@@ -185,7 +184,7 @@ def run_run_benchmark(
     *, minutes: float = 10.0, replay_frames: int = 600, live_seconds: float = 30.0, progress: Callable | None = None
 ) -> dict[str, Any]:
     """Replay throughput, live latency and (when ``minutes`` > 0) memory over a long live run."""
-    results: dict[str, Any] = {"meta": _machine()}
+    results: dict[str, Any] = {"meta": machine_info()}
     steps = ["replay", "live latency", "live latency, one marker"] + (["memory"] if minutes > 0 else [])
     with tempfile.TemporaryDirectory(prefix="ar_anchor_bench_run_") as name:
         tmp = Path(name)
@@ -205,14 +204,8 @@ def run_run_benchmark(
             results["long_live"] = {k: v for k, v in long_run.items() if k != "rss_mb"}
             results["long_live"]["rss_mb"] = [[round(t, 1), round(rss, 1)] for t, rss in long_run["rss_mb"]]
             results["memory"] = _memory(long_run)
-    results["meta"]["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    results["meta"]["load_average_end"] = load_average()
     return results
-
-
-def _f(value: Any, digits: int = 2) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "-"
-    return f"{value:.{digits}f}"
 
 
 def run_markdown(results: dict[str, Any], command: str) -> str:
@@ -220,7 +213,7 @@ def run_markdown(results: dict[str, Any], command: str) -> str:
     lines = [
         "# End-to-end runs: replay throughput, live latency, memory",
         "",
-        f"Produced by `{command}`: real `ar-anchor` processes, default settings (see `ar_anchor/bench_run.py`).",
+        f"Produced by `{command}`: real `ar-anchor` processes, default settings (see `ar_anchor/bench/run.py`).",
         "",
         "## Replay: 1920x1080 H.264, cube overlay, rerun logging",
         "",
@@ -243,7 +236,7 @@ def run_markdown(results: dict[str, Any], command: str) -> str:
     one = results["live_one"]
     lines.append(f"| exit code, status | {live['exit_code']}, {live['status']} | {one['exit_code']}, {one['status']} |")
     lines.append(
-        f"| frames tracked (fps) | {live['frames']} ({_f(live['fps'], 1)}) | {one['frames']} ({_f(one['fps'], 1)}) |"
+        f"| frames tracked (fps) | {live['frames']} ({fmt(live['fps'], 1)}) | {one['frames']} ({fmt(one['fps'], 1)}) |"
     )
     lines.append(
         f"| dropped by the camera queue (tracker busy) | {live['live'].get('dropped_queue', 0)} | "
@@ -254,8 +247,8 @@ def run_markdown(results: dict[str, Any], command: str) -> str:
         name = f"**{stage}**" if stage == "capture_to_pose" else stage
         a, b = live["stages"][stage], one["stages"].get(stage, {})
         lines.append(
-            f"| {name} ms, median / p95 | {_f(a.get('median'))} / {_f(a.get('p95'))} | "
-            f"{_f(b.get('median'))} / {_f(b.get('p95'))} |"
+            f"| {name} ms, median / p95 | {fmt(a.get('median'))} / {fmt(a.get('p95'))} | "
+            f"{fmt(b.get('median'))} / {fmt(b.get('p95'))} |"
         )
     lines += [
         "",
@@ -272,10 +265,10 @@ def run_markdown(results: dict[str, Any], command: str) -> str:
             f"{long_live['frames']} frames tracked; stopped with SIGINT: exit {long_live['exit_code']}, "
             f"status `{long_live['status']}`. Resident set size sampled every {SAMPLE_S:g} s:",
             "",
-            f"- after the {memory['warmup_s']:g} s warm-up: {_f(memory.get('rss_after_warmup_mb'), 1)} MB; "
-            f"peak after it: {_f(memory.get('peak_after_warmup_mb'), 1)} MB; at the end: "
-            f"{_f(memory.get('final_mb'), 1)} MB;",
-            f"- **growth after warm-up: {_f(memory.get('growth_mb'), 1)} MB**.",
+            f"- after the {memory['warmup_s']:g} s warm-up: {fmt(memory.get('rss_after_warmup_mb'), 1)} MB; "
+            f"peak after it: {fmt(memory.get('peak_after_warmup_mb'), 1)} MB; at the end: "
+            f"{fmt(memory.get('final_mb'), 1)} MB;",
+            f"- **growth after warm-up: {fmt(memory.get('growth_mb'), 1)} MB**.",
         ]
     lines += [
         "",

@@ -1,0 +1,70 @@
+"""Memory figures of the speed benchmark: peak and current resident set size, handing freed memory
+back to the OS, and a fresh tracker's Python-side allocation peak."""
+
+from __future__ import annotations
+
+import gc
+import math
+import os
+import resource
+import sys
+import tracemalloc
+from collections.abc import Sequence
+
+from ...camera import CameraModel
+from ...config import TrackerConfig
+from ...sources.base import Frame
+from ...track.tracker import Tracker
+
+__all__ = ["maxrss_mb", "release_freed_memory", "reset_peak_rss", "rss_now_mb", "tracemalloc_peak_mb"]
+
+
+def maxrss_mb() -> float:
+    """Peak resident set size of this process (since start, or since :func:`reset_peak_rss`)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024  # bytes on macOS, KiB on Linux
+
+
+def rss_now_mb() -> float:
+    """Current resident set size (Linux ``/proc/self/statm``; NaN elsewhere)."""
+    try:
+        with open("/proc/self/statm") as handle:
+            pages = int(handle.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return math.nan
+    return pages * os.sysconf("SC_PAGE_SIZE") / (1024 * 1024)
+
+
+def release_freed_memory() -> None:
+    """Hand freed heap memory back to the OS (glibc keeps big freed blocks, e.g. the clips' frames)."""
+    gc.collect()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def reset_peak_rss() -> bool:
+    """Reset the peak RSS (Linux >= 4.0: ``/proc/self/clear_refs`` 5 resets VmHWM and ``ru_maxrss``)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as handle:
+            handle.write("5")
+    except OSError:
+        return False
+    return True
+
+
+def tracemalloc_peak_mb(frames: Sequence[Frame], config: TrackerConfig, camera: CameraModel) -> float:
+    """Peak of Python-side allocations (numpy arrays included, OpenCV's own buffers not) of a fresh tracker."""
+    gc.collect()
+    tracemalloc.start()
+    try:
+        tracker = Tracker(config, camera)
+        for frame in frames:
+            tracker.process(frame)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    return peak / 1e6
