@@ -128,13 +128,6 @@ class Pose:
     def from_matrix(cls, rotation: np.ndarray, translation: np.ndarray) -> Pose:
         return cls(rvec_from_matrix(rotation), translation)
 
-    @classmethod
-    def from_homogeneous(cls, matrix: np.ndarray) -> Pose:
-        matrix = np.asarray(matrix, dtype=np.float64)
-        if matrix.shape != (4, 4):
-            raise ValueError(f"matrix: expected shape (4, 4), got {matrix.shape}")
-        return cls.from_matrix(matrix[:3, :3], matrix[:3, 3])
-
     @functools.cached_property
     def rotation(self) -> np.ndarray:
         """Rotation matrix R (3, 3), read-only (computed once: poses are asked for it many times a frame)."""

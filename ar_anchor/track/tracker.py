@@ -184,6 +184,17 @@ class Tracker:
         return detections
 
     def process(self, frame: Frame) -> FrameResult:
+        """Track one frame (frames of one stream, in order): detect the markers (in regions around
+        where they were, or the whole frame while any is missing), solve every marker and board
+        (both IPPE solutions kept), and pass them through each target's flip filter.
+
+        Returns the frame's :class:`FrameResult`: ``targets`` maps each :class:`~ar_anchor.targets.TargetId`
+        with a pose this frame to its :class:`TargetResult` (state ``tracked``, ``ambiguous`` or
+        ``predicted``), in :class:`~ar_anchor.targets.TargetId` order; ``failures`` says why markers
+        seen got no pose; ``latency_ms`` the stage times. A frame that repeats the previous one's
+        pixels (a 30 fps container carrying 12 fps content) returns the previous answer, marked
+        ``repeated``: it is no new measurement.
+        """
         fingerprint = np.ascontiguousarray(frame.image[::4, ::4])
         candidate = self._previous is not None and self._repeats(fingerprint)
         result = self._process(frame, self._blurred(fingerprint), repeat_candidate=candidate)
@@ -370,10 +381,15 @@ class Tracker:
         )
 
     def reset(self) -> None:
-        """Forget all tracks (e.g. after a cut in the video)."""
+        """Forget everything learned from earlier frames (e.g. after a cut in the video): the tracks
+        with their flip evidence, where markers were (ROI search), repeats and sharpness. The next
+        frame is processed exactly as a new tracker would."""
         self.tracks.clear()
         self._previous = self._fingerprint = None
         self._sharpness = None
+        self._last_corners, self._before_corners, self._seen = {}, {}, {}
+        self._frames_since_full = 0
+        self._last_size = None
 
 
 _REPEAT_PX = 0.25  # corners that moved less than this (every one) are a repeated frame's
