@@ -1,0 +1,224 @@
+"""A rerun recording and where it goes: :class:`Recording` owns one stream with its sinks.
+
+The sinks are an ``.rrd`` file and/or a viewer (one this process starts, :func:`~.viewer.spawn_local_viewer`,
+or a running one given by URL). A file can be written beside its final name (``partial``) and renamed there
+when the recording closes complete, so a failed command leaves no half recording behind; or in place, so
+that whatever was logged before a failure can still be opened. A long recording can go on in another file
+(:meth:`Recording.next_file`). Flushes are bounded: a viewer that went away must not hang a command's end,
+and a sink that could not write (disk full) is an :class:`~ar_anchor.errors.OutputError`.
+
+The logging primitives (:meth:`Recording.scalar`, :meth:`~Recording.text`, :meth:`~Recording.image_points`,
+...) are what the tools need, so that nothing outside :mod:`ar_anchor.viz` imports rerun. 2D positions
+are OpenCV pixel coordinates (integers at pixel centres); rerun puts integers at pixel corners, so they
+are shifted by half a pixel here.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from ..errors import OutputError
+from .viewer import spawn_local_viewer
+
+__all__ = ["Recording"]
+
+Colour = tuple[int, int, int] | tuple[int, int, int, int]
+
+
+class Recording:
+    """One rerun stream with its sinks: an ``.rrd`` file at ``path`` and/or a viewer.
+
+    ``spawn`` starts (or reuses) a local viewer, ``connect`` streams to a running one (its gRPC URL).
+    ``partial``: write ``.<name>.<pid>.tmp`` beside ``path`` and rename it to ``path`` on :meth:`close`
+    (``keep``). ``blueprint`` is the viewer layout sent with the sinks, ``name`` the recording's name in
+    the viewer; ``option`` (e.g. ``--rrd``) is put before the file's name in errors.
+    """
+
+    def __init__(
+        self,
+        application_id: str,
+        *,
+        path: str | os.PathLike[str] | None = None,
+        partial: bool = False,
+        spawn: bool = False,
+        connect: str | None = None,
+        blueprint: rrb.Blueprint | None = None,
+        name: str | None = None,
+        option: str | None = None,
+    ) -> None:
+        self.stream = rr.RecordingStream(application_id)
+        self.files: list[Path] = []  # the recording's files (final names), in order
+        self._partial = partial
+        self._option = option
+        self._blueprint = blueprint
+        self._name = name
+        self._writing: Path | None = None  # the file being written (its partial name when partial)
+        if path is not None:
+            self._writing = self._open(Path(path))
+            self.files.append(Path(path))
+        self.viewer_url = connect
+        if connect is None and spawn:
+            self.viewer_url = spawn_local_viewer()
+        self._viewer = rr.GrpcSink(self.viewer_url) if self.viewer_url is not None else None
+        self._set_sinks()
+
+    # ------------------------------------------------------------------ sinks and files
+    def _named(self, path: Path) -> str:
+        return f"{self._option} {path}" if self._option else str(path)
+
+    def _open(self, path: Path) -> Path:
+        """Create the file a sink writes ``path`` into (``path`` itself or its partial name), or OutputError."""
+        writing = path.with_name(f".{path.name}.{os.getpid()}.tmp") if self._partial else path
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if path.is_dir():
+                raise IsADirectoryError(21, "is a directory")
+            writing.touch()
+        except OSError as err:
+            raise OutputError(f"{self._named(path)}: cannot write ({err.strerror})") from None
+        return writing
+
+    def _set_sinks(self) -> None:
+        sinks: list[rr.FileSink | rr.GrpcSink] = [rr.FileSink(str(self._writing))] if self._writing else []
+        if self._viewer is not None:
+            sinks.append(self._viewer)
+        if sinks:
+            self.stream.set_sinks(*sinks, default_blueprint=self._blueprint)
+        if self._name is not None:
+            self.stream.send_recording_name(self._name)
+
+    def _finish(self, writing: Path, final: Path, *, keep: bool) -> None:
+        """A partial file that was written: renamed to its final name (``keep``) or removed."""
+        if not self._partial or not writing.exists():
+            return
+        if not keep:
+            writing.unlink(missing_ok=True)
+            return
+        try:
+            os.replace(writing, final)
+        except OSError as err:
+            writing.unlink(missing_ok=True)
+            raise OutputError(f"{self._named(final)}: cannot write ({err.strerror})") from None
+
+    def next_file(self, path: str | os.PathLike[str]) -> None:
+        """Close the current file complete and go on in ``path`` (the viewer, if any, stays). The new
+        file starts with the blueprint and the recording's name; static data is the caller's to log again."""
+        self.flush(timeout_s=30.0)
+        path = Path(path)
+        previous, self._writing = self._writing, self._open(path)
+        self._set_sinks()  # closes the previous file's sink
+        if previous is not None and self.files:
+            self._finish(previous, self.files[-1], keep=True)
+        self.files.append(path)
+
+    def flush(self, timeout_s: float) -> None:
+        """Flush the sinks, waiting at most ``timeout_s``; a sink that could not write (disk full, file too
+        large, viewer gone) is an OutputError."""
+        try:
+            self.stream.flush(timeout_sec=timeout_s)
+        except RuntimeError as err:
+            where = [self._named(self.files[-1])] if self.files else []
+            if self.viewer_url is not None:
+                where.append(f"the viewer at {self.viewer_url}")
+            raise OutputError(
+                f"{' and '.join(where) or 'recording'}: cannot write the recording ({err}: disk full, or the "
+                "viewer gone?); the file holds the frames logged before"
+            ) from None
+
+    def close(self, *, keep: bool = True, timeout_s: float = 10.0) -> None:
+        """Flush (bounded by ``timeout_s``) and close the sinks. A partial file is renamed into place when
+        ``keep`` and the flush succeeded, removed otherwise; a file written in place stays either way."""
+        try:
+            self.flush(timeout_s)
+        except OutputError:
+            keep = False
+            raise
+        finally:
+            self.stream.disconnect()
+            if self._writing is not None and self.files:
+                self._finish(self._writing, self.files[-1], keep=keep)
+
+    # ------------------------------------------------------------------ logging primitives
+    def time(self, timeline: str, *, sequence: int | None = None, seconds: float | None = None) -> None:
+        """Set the current position on ``timeline``: a ``sequence`` number or a duration in ``seconds``."""
+        if sequence is not None:
+            self.stream.set_time(timeline, sequence=int(sequence))
+        else:
+            self.stream.set_time(timeline, duration=seconds)
+
+    def log(self, entity: str, data: Any, *, static: bool = False) -> None:
+        """Any rerun archetype (for the viz package's own loggers)."""
+        self.stream.log(entity, data, static=static)
+
+    def clear(self, entity: str, *, recursive: bool = False) -> None:
+        """Clear ``entity`` (and its children when ``recursive``) from now on. Static data stays."""
+        self.stream.log(entity, rr.Clear(recursive=recursive))
+
+    def scalar(self, entity: str, value: float | None) -> None:
+        """One point of the time series ``entity``; None and non-finite values are skipped."""
+        if value is not None and math.isfinite(value):
+            self.stream.log(entity, rr.Scalars(float(value)))
+
+    def text(self, entity: str, text: str, *, warn: bool = False, static: bool = False) -> None:
+        """A line of a text log, level INFO or WARN."""
+        level = rr.TextLogLevel.WARN if warn else rr.TextLogLevel.INFO
+        self.stream.log(entity, rr.TextLog(text, level=level), static=static)
+
+    def markdown(self, entity: str, text: str, *, static: bool = True) -> None:
+        """A markdown document."""
+        self.stream.log(entity, rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=static)
+
+    def encoded_image(self, entity: str, data: bytes, media_type: str, *, static: bool = False) -> None:
+        """An already encoded image (``image/jpeg``, ``image/png``)."""
+        self.stream.log(entity, rr.EncodedImage(contents=data, media_type=media_type), static=static)
+
+    def image_file(self, entity: str, path: str | os.PathLike[str], *, static: bool = True) -> None:
+        """An image file (PNG, JPEG), its type from its name."""
+        self.stream.log(entity, rr.EncodedImage(path=path), static=static)
+
+    def jpeg(self, entity: str, image: np.ndarray, *, quality: int, scale: float = 1.0) -> None:
+        """``image`` (BGR) resized by ``scale`` and encoded as JPEG of ``quality``."""
+        if scale != 1.0:
+            size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if ok:
+            self.encoded_image(entity, jpeg.tobytes(), "image/jpeg")
+
+    def image_points(
+        self,
+        entity: str,
+        pixels: np.ndarray,
+        *,
+        radius: float,
+        colours: Sequence[Colour],
+        scale: float = 1.0,
+        static: bool = False,
+    ) -> None:
+        """Points on an image: OpenCV pixel coordinates (N, 2), on an image shown at ``scale``."""
+        pixels = np.asarray(pixels)
+        if not np.issubdtype(pixels.dtype, np.floating):
+            pixels = pixels.astype(np.float64)
+        self.stream.log(entity, rr.Points2D((pixels + 0.5) * scale, radii=radius, colors=colours), static=static)
+
+    def points3d(
+        self,
+        entity: str,
+        positions: np.ndarray,
+        *,
+        radius: float,
+        colours: Sequence[Colour],
+        labels: Sequence[str] | None = None,
+        static: bool = False,
+    ) -> None:
+        """Points in 3D, optionally labelled."""
+        self.stream.log(entity, rr.Points3D(positions, radii=radius, colors=colours, labels=labels), static=static)
