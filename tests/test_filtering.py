@@ -37,17 +37,17 @@ def test_rotation_filter_learns_a_turn_rate_and_predicts_through_a_gap():
 
 
 def test_two_mode_filter_matches_filterpys_imm_step_by_step():
-    # given filterpy's IMMEstimator over two KalmanFilters, set up as _TwoModeCV's still and moving models
+    # given filterpy's IMMEstimator over two KalmanFilters, set up as TwoModeCV's still and moving models
     from filterpy.kalman import IMMEstimator, KalmanFilter
 
-    from ar_anchor.track.filtering import _cv_process_noise, _cv_transition, _TwoModeCV
+    from ar_anchor.track.filtering.smoothing import TwoModeCV, cv_process_noise, cv_transition
 
     rng = np.random.default_rng(1)
     x0 = rng.normal(size=6)
     a = rng.normal(size=(6, 6))
     p0 = a @ a.T * 0.01 + np.eye(6) * 1e-3
     still_sigma, accel = 1e-3, 30.0
-    ours = _TwoModeCV(x0, p0, still_sigma, accel)
+    ours = TwoModeCV(x0, p0, still_sigma, accel)
     models = []
     for _ in range(2):
         kf = KalmanFilter(dim_x=6, dim_z=3)
@@ -63,7 +63,7 @@ def test_two_mode_filter_matches_filterpys_imm_step_by_step():
         models[0].Q = np.block(
             [[np.eye(3) * still_sigma**2 * dt, np.zeros((3, 3))], [np.zeros((3, 3)), np.eye(3) * 1e-12]]
         )
-        models[1].F, models[1].Q = _cv_transition(dt), _cv_process_noise(dt, accel)
+        models[1].F, models[1].Q = cv_transition(dt), cv_process_noise(dt, accel)
         reference.predict()
         ours.predict(dt)
         if k % 5 != 4:

@@ -1,0 +1,391 @@
+"""One target's track: the branches, the evidence and the smoothers put together, frame by frame, into
+the pose to publish and its state (see the package doc)."""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...camera import CameraModel
+from ...config import FilterConfig
+from ...geometry import Pose, angle_between_deg
+from ..pose import BoardPose, MarkerPose, PoseHypothesis
+from .branches import BranchPair
+from .evidence import FlipEvidence, TrackEvent, raw_pick
+from .noise import CornerNoise
+from .smoothing import so3_exp, so3_log
+
+__all__ = ["TargetTrack", "TrackUpdate"]
+
+
+@dataclass(frozen=True)
+class TrackUpdate:
+    """The track's answer for one frame."""
+
+    state: str  # tracked | ambiguous | predicted
+    pose: Pose
+    branch: int  # the output branch (0 or 1)
+    committed: bool
+    evidence: float  # confidence bound of the window's mean error difference, in px (+: branch 0)
+    hypotheses: tuple[Pose | None, Pose | None]  # this frame's measurement on each branch
+    events: tuple[TrackEvent, ...] = ()
+
+
+class TargetTrack:
+    """The filter state of one target (see the package doc)."""
+
+    def __init__(self, config: FilterConfig, points_in_target: np.ndarray) -> None:
+        self.config = config
+        self.noise = CornerNoise(config, points_in_target)
+        self.evidence = FlipEvidence(config, self.noise)
+        self.branches: BranchPair | None = None  # None: no track
+        self.output_branch = 0
+        self.last_ns: int | None = None  # the last frame seen (measured or not)
+        self._period_s: float | None = None  # the frame interval (the shortest recent one, smoothed)
+        self.measured_ns: int | None = None  # the last frame measured
+        self.frames = 0
+        self._separation_deg = math.inf  # this frame's angle between its two solutions
+        self._held_spike = False  # the last frame's output jump was held back (see _spike)
+        self._was_tracked = False  # the last measured frame's state was tracked
+        self._output: Pose | None = None  # the last published measured output
+        self._velocity: tuple[np.ndarray, np.ndarray] = (np.zeros(3), np.zeros(3))  # omega (body), v (camera)
+        self._was_still = False  # the output branch's measurements stayed put for still_s (see _Stillness)
+        self._stillness = _Stillness(config)
+
+    @property
+    def alive(self) -> bool:
+        return self.branches is not None
+
+    @property
+    def committed(self) -> int | None:
+        """The branch the evidence committed to (None: undecided)."""
+        return self.evidence.committed
+
+    # ------------------------------------------------------------------ per frame
+    def update(
+        self,
+        measurement: MarkerPose | BoardPose | None,
+        timestamp_ns: int,
+        camera: CameraModel,
+        *,
+        blurred: bool = False,
+    ) -> TrackUpdate | None:
+        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen). ``blurred``: the
+        whole frame is much less sharp than usual (the camera moved fast): a measurement in it is not
+        vouched for, and a target lost in it is not predicted (its motion is unknown).
+
+        Returns None when there is nothing to publish: no track, a gap too long to predict through
+        (the track stays :attr:`alive`, keeping its flip memory, until ``memory_s``), or a reset.
+        """
+        timestamp_ns = self._tick(timestamp_ns)
+        events: list[TrackEvent] = []
+        self.noise.new_frame()
+        if measurement is None:
+            return self._coast(timestamp_ns, events, blurred)
+        assigned, restart_frame = self._measure(measurement, timestamp_ns, camera, events)
+        assert self.branches is not None
+        doubtful = self.branches.doubtful
+        decided = self.evidence.judge(assigned, timestamp_ns, doubtful, self.frames, events)
+        target = self.evidence.choose(assigned, decided, doubtful, timestamp_ns, self.output_branch)
+        moved_branch = self._move_output(target, events)
+        pose, covariance = self._measured_output(assigned, camera)
+        spike = not moved_branch and not restart_frame and self._spike(pose)
+        if spike:
+            events.append(TrackEvent("spike", "orientation jump in place held for one frame"))
+            assert self._output is not None
+            pose = Pose.from_matrix(self._output.rotation, pose.tvec)
+        vouched = self._vouched(assigned, decided, covariance, spike, blurred)
+        hypotheses = (
+            assigned[0].pose if assigned[0] is not None else None,
+            assigned[1].pose if assigned[1] is not None else None,
+        )
+        self._was_tracked = vouched
+        update = self._result("tracked" if vouched else "ambiguous", pose, hypotheses, events)
+        self._output = pose
+        return update
+
+    def _tick(self, timestamp_ns: int) -> int:
+        """This frame's time: a repeated or backward timestamp is 1 ns after the last (no time has passed);
+        a later one updates the frame interval (a slow frame rate is not a gap)."""
+        if self.last_ns is not None and timestamp_ns <= self.last_ns:
+            timestamp_ns = self.last_ns + 1
+        elif self.last_ns is not None:
+            step = (timestamp_ns - self.last_ns) * 1e-9
+            self._period_s = step if self._period_s is None else min(step, 0.8 * self._period_s + 0.2 * step)
+        self.last_ns = timestamp_ns
+        return timestamp_ns
+
+    def _measure(
+        self, measurement: MarkerPose | BoardPose, timestamp_ns: int, camera: CameraModel, events: list[TrackEvent]
+    ) -> tuple[list[PoseHypothesis | None], bool]:
+        """Take this frame's measurement: its noise, and its solutions assigned to the branches, which
+        take them (a new track starts from them). Returns the assignment, and whether the branches
+        (re)started: a new track, or one seen again after a gap."""
+        self.noise.observe(measurement)
+        gap_s = math.inf if self.measured_ns is None else (timestamp_ns - self.measured_ns) * 1e-9
+        self.measured_ns = timestamp_ns
+        self.frames += 1
+        hypotheses = measurement.hypotheses  # how far apart the two solutions are, asked for several times
+        self._separation_deg = (
+            angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation)
+            if len(hypotheses) == 2
+            else math.inf
+        )
+        if self.branches is None:
+            return self._start(measurement, camera, events), True
+        restart = self._is_gap(gap_s)
+        if restart:
+            events.append(TrackEvent("reacquired", f"seen again after {gap_s:.2f} s"))
+            self.evidence.reacquired()
+        branches = self.branches
+        assigned = branches.associate(measurement, camera, gap_s, restart, self._separation_deg)
+        # Unclear for long while the solutions are far apart: which is which may have been lost. (While they
+        # are within flip_angle_deg of each other either one is close enough, so unclarity costs nothing.)
+        if branches.apart and branches.blind_s > self.config.crossing_blind_s and self.evidence.committed is not None:
+            self.evidence.uncommit(branches.blind_s, events)
+        branches.update(assigned, measurement, camera, gap_s, restart)
+        return assigned, restart
+
+    def _is_gap(self, gap_s: float) -> bool:
+        """Were frames missed for longer than ``restart_gap_s``? (At 5 fps every frame is 0.2 s after the
+        last one: that is the frame rate, not a gap; a gap is more than one and a half frame intervals.)"""
+        period = self._period_s or 0.0
+        return gap_s > self.config.restart_gap_s and gap_s > 1.5 * period
+
+    def _start(
+        self, measurement: MarkerPose | BoardPose, camera: CameraModel, events: list[TrackEvent]
+    ) -> list[PoseHypothesis | None]:
+        hypotheses = measurement.hypotheses
+        self.branches = BranchPair(self.config, hypotheses, self.noise, camera)
+        self.output_branch = 0
+        self.evidence.restart()
+        events.append(TrackEvent("start", "track started"))
+        return [hypotheses[0], hypotheses[1] if len(hypotheses) > 1 else None]
+
+    def _move_output(self, target: int, events: list[TrackEvent]) -> bool:
+        """Output branch ``target`` from this frame on, if it has started: has the output moved?"""
+        if target == self.output_branch or self.branches is None or not self.branches.has(target):
+            return False
+        events.append(
+            TrackEvent(
+                "branch",
+                f"output moves to branch {target}" + ("" if self.evidence.committed is not None else " (best guess)"),
+            )
+        )
+        self.output_branch = target
+        return True
+
+    def _vouched(
+        self,
+        assigned: list[PoseHypothesis | None],
+        decided: int | None,
+        covariance: np.ndarray | None,
+        spike: bool,
+        blurred: bool,
+    ) -> bool:
+        """Is this measured frame's output ``tracked`` (see the package doc)?"""
+        assert self.branches is not None
+        evidence, output = self.evidence, self.output_branch
+        return (
+            not spike
+            and evidence.committed is not None
+            and evidence.committed == output
+            and assigned[output] is not None
+            and decided in (None, output)
+            and evidence.against == 0
+            and not self.branches.doubtful
+            and not (self.branches.unclear and decided is None)
+            and not evidence.close_call(assigned, self._separation_deg)
+            and not evidence.unconfirmed
+            and not self.noise.outlier
+            and not blurred
+            and raw_pick(assigned) in (None, output)
+            and not self._too_uncertain(covariance)
+        )
+
+    def _measured_output(
+        self, assigned: list[PoseHypothesis | None], camera: CameraModel
+    ) -> tuple[Pose, np.ndarray | None]:
+        """The output pose of a measured frame: the output branch's smoothed pose, held within
+        ``output_sigmas`` standard deviations (the measurement's own covariance) of this frame's
+        measurement on that branch, so smoothing can lower jitter but never lag behind real motion
+        by more than the noise. Returns the pose and the measurement's rotation covariance."""
+        assert self.branches is not None
+        smoother = self.branches.smoother(self.output_branch)
+        rotation, translation = smoother.rotation, self.branches.translation_filter.translation
+        hypothesis = assigned[self.output_branch]
+        covariance = None
+        if hypothesis is not None:
+            measured = hypothesis.pose
+            cov_rot, cov_t = self.noise.covariance(measured, camera)
+            # a still target is averaged over many frames; a moving one follows its measurements closely
+            assert self.measured_ns is not None
+            still = self._was_still = self._stillness.observe(
+                self.output_branch, self.measured_ns, measured, cov_rot, cov_t
+            )
+            k = self.config.output_sigmas if still and not self.noise.outlier else self.config.output_sigmas_moving
+            error = so3_log(measured.rotation.T @ rotation)  # body-frame error, as the covariance's
+            rotation = measured.rotation @ so3_exp(_within(error, cov_rot, k))
+            translation = measured.tvec + _within(translation - measured.tvec, cov_t, k)
+            covariance = cov_rot
+            other = self._undecided_other(assigned)
+            if other is not None:
+                rotation = _halfway(rotation, self._held(other, assigned, camera, k))
+        omega = smoother.omega
+        velocity = self.branches.translation_filter.velocity
+        self._velocity = (omega, velocity)
+        return Pose.from_matrix(rotation, translation), covariance
+
+    def _spike(self, pose: Pose) -> bool:
+        """Is this output an orientation jump in place: more than ``flip_angle_deg`` from the last
+        frame's output on the same branch while the position moved less than ``spike_translation_m``
+        (no hand turns a marker that fast about its own centre: a measurement that jumped, from blur or
+        a bad corner)? Such an output is held back for one frame, never two: if the next frame keeps
+        the new orientation, it is taken."""
+        previous, held = self._output, self._held_spike
+        self._held_spike = False
+        if previous is None or held:
+            return False
+        jumped = angle_between_deg(previous.rotation, pose.rotation) > self.config.flip_angle_deg
+        in_place = float(np.linalg.norm(previous.tvec - pose.tvec)) < self.config.spike_translation_m
+        self._held_spike = jumped and in_place
+        return self._held_spike
+
+    def _undecided_other(self, assigned: list[PoseHypothesis | None]) -> int | None:
+        """The other branch, when this uncommitted frame's output should be halfway between the two:
+        nothing in this frame or the recent evidence chooses (no decisive or leaning frame), and the two
+        solutions are within twice ``flip_angle_deg`` of each other, so halfway is within a flip's
+        worth of the truth whichever is right (a fronto-parallel marker: the steady, unbiased answer)."""
+        if self.evidence.committed is not None or None in assigned or self.branches is None:
+            return None
+        if not self.branches.complete or self.evidence.leaning:
+            return None
+        if self._separation_deg > 2.0 * self.config.flip_angle_deg:
+            return None
+        return 1 - self.output_branch
+
+    def _held(self, index: int, assigned: list[PoseHypothesis | None], camera: CameraModel, k: float) -> np.ndarray:
+        """Branch ``index``'s smoothed rotation held within ``k`` sigma of its measurement this frame."""
+        assert self.branches is not None
+        smoother, hypothesis = self.branches.smoother(index), assigned[index]
+        assert hypothesis is not None
+        cov_rot, _ = self.noise.covariance(hypothesis.pose, camera)
+        error = so3_log(hypothesis.pose.rotation.T @ smoother.rotation)
+        return hypothesis.pose.rotation @ so3_exp(_within(error, cov_rot, k))
+
+    def _coast(self, timestamp_ns: int, events: list[TrackEvent], blurred: bool = False) -> TrackUpdate | None:
+        """A frame without a measurement: a short prediction (velocity decaying with
+        ``predict_damping_s``) for up to ``predict_s``; then nothing is published, but the track keeps
+        its branches and evidence until ``memory_s``, so a target that returns is not a new track."""
+        if self.branches is None or self.measured_ns is None:
+            return None
+        cfg = self.config
+        gap_s = (timestamp_ns - self.measured_ns) * 1e-9
+        if gap_s > cfg.memory_s:
+            self.branches = None
+            events.append(TrackEvent("reset", f"lost for more than {cfg.memory_s:g} s: reset"))
+            return None
+        if gap_s > cfg.predict_s or self._output is None or blurred or not self._was_tracked:
+            return None  # (an undecided target is not predicted: which pose to continue is not known)
+        tau = cfg.predict_damping_s
+        reach = tau * (1.0 - math.exp(-gap_s / tau))  # integral of exp(-t / tau) over the gap
+        omega, velocity = self._velocity
+        settled = self._was_still and self._stillness.settled_deg <= cfg.predict_max_deg
+        if not settled and math.degrees(self._prediction_doubt(omega, gap_s, reach)) > cfg.predict_max_deg:
+            return None  # not trustworthy: publish nothing rather than a guess
+        rotation = self._output.rotation @ so3_exp(omega * reach)
+        pose = Pose.from_matrix(rotation, self._output.tvec + velocity * reach)
+        return self._result("predicted", pose, (None, None), events)
+
+    def _prediction_doubt(self, omega: np.ndarray, gap_s: float, reach_s: float) -> float:
+        """How much more a prediction over ``gap_s`` may be off than the last measured output (radians):
+        the turn the damping leaves out if the motion went on or, if larger, the turn plus the shift (as an
+        angle seen from the camera) at the rate last measured."""
+        return max(float(np.linalg.norm(omega)) * (gap_s - reach_s), self._stillness.rate * gap_s)
+
+    def _too_uncertain(self, covariance: np.ndarray | None) -> bool:
+        """3 sigma of the measured orientation beyond flip_angle_deg: even the right branch may be off
+        by a flip's worth."""
+        if covariance is None:
+            return True
+        sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(covariance))), 0.0))
+        return math.degrees(3.0 * sigma) > self.config.flip_angle_deg
+
+    def _result(
+        self, state: str, pose: Pose, hypotheses: tuple[Pose | None, Pose | None], events: list[TrackEvent]
+    ) -> TrackUpdate:
+        return TrackUpdate(
+            state,
+            pose,
+            self.output_branch,
+            self.evidence.committed is not None,
+            self.evidence.bound(0.0, 0.0),
+            hypotheses,
+            tuple(events),
+        )
+
+
+class _Stillness:
+    """Has the output branch's measurement stayed put, within its noise, for ``still_s``? And how fast
+    has it moved lately (what a prediction may miss)?"""
+
+    _STILL_CHI2 = 16.0  # still: each difference within this squared Mahalanobis distance (chi2, 3 dof: 99.9 %)
+
+    def __init__(self, config: FilterConfig) -> None:
+        self.config = config
+        self.settled_deg = math.inf  # how much the measurement turned over still_s (see observe)
+        self.rate = math.inf  # last measured rate of change (turn + shift / distance), rad/s
+        self._rates: collections.deque[tuple[int, float]] = collections.deque()  # (ns, rad/s) over still_s
+        self._history: collections.deque[tuple[int, int, Pose]] = collections.deque()  # (branch, ns, measured)
+
+    def observe(self, branch: int, measured_ns: int, measured: Pose, cov_rot: np.ndarray, cov_t: np.ndarray) -> bool:
+        """Has branch ``branch``'s measurement stayed put, within its noise, for ``still_s``, up to this
+        one (measured at ``measured_ns``, with these covariances)? (The difference of two measurements
+        has twice a measurement's covariance; ``_STILL_CHI2``.) A change of branch starts over."""
+        history = self._history
+        if history and history[0][0] != branch:
+            history.clear()
+        if history:  # how fast it moved since the last measurement (what a prediction may miss), rad/s
+            _, last_ns, last = history[-1]
+            dt = max((measured_ns - last_ns) * 1e-9, 1e-3)
+            turn = float(np.linalg.norm(so3_log(last.rotation.T @ measured.rotation)))
+            shift = float(np.linalg.norm(measured.tvec - last.tvec)) / max(float(np.linalg.norm(measured.tvec)), 1e-6)
+            self._rates.append((measured_ns, (turn + shift) / dt))
+        horizon = measured_ns - int(self.config.still_s * 1e9)
+        while self._rates and self._rates[0][0] < horizon:
+            self._rates.popleft()
+        # the fastest over the last still_s: one slow step (a repeated frame) says little
+        self.rate = max((rate for _, rate in self._rates), default=math.inf)
+        history.append((branch, measured_ns, measured))
+        while len(history) > 1 and history[1][1] <= horizon:
+            history.popleft()
+        _, then_ns, then = history[0]
+        if then_ns > horizon:
+            return False  # not seen long enough to tell
+        turned = so3_log(then.rotation.T @ measured.rotation)
+        moved = measured.tvec - then.tvec
+        shift = float(np.linalg.norm(moved)) / max(float(np.linalg.norm(measured.tvec)), 1e-6)
+        self.settled_deg = math.degrees(float(np.linalg.norm(turned)) + shift)  # turn + shift seen from the camera
+        return bool(
+            turned @ np.linalg.solve(2.0 * cov_rot, turned) < self._STILL_CHI2
+            and moved @ np.linalg.solve(2.0 * cov_t, moved) < self._STILL_CHI2
+        )
+
+
+def _halfway(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rotation halfway between ``a`` and ``b`` on the geodesic."""
+    return a @ so3_exp(0.5 * so3_log(a.T @ b))
+
+
+def _within(error: np.ndarray, covariance: np.ndarray, sigmas: float) -> np.ndarray:
+    """``error`` shrunk (along itself) to at most ``sigmas`` Mahalanobis distance under ``covariance``."""
+    try:
+        distance = math.sqrt(max(float(error @ np.linalg.solve(covariance, error)), 0.0))
+    except np.linalg.LinAlgError:
+        return np.zeros_like(error)
+    if distance <= sigmas or distance == 0.0:
+        return error
+    return error * (sigmas / distance)
