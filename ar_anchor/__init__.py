@@ -18,12 +18,12 @@ _EXPORTS = {
     "FrameResult": "ar_anchor.track.tracker",
     "FrameSource": "ar_anchor.sources.base",
     "Pose": "ar_anchor.geometry",
-    "SyntheticScene": "ar_anchor.sources.synthetic",
+    "SyntheticScene": "ar_anchor.synthetic",
     "SyntheticSource": "ar_anchor.sources.synthetic",
     "TargetResult": "ar_anchor.track.tracker",
     "Tracker": "ar_anchor.track.tracker",
     "TrackerConfig": "ar_anchor.config",
-    "demo_scene": "ar_anchor.sources.synthetic",
+    "demo_scene": "ar_anchor.synthetic",
     "load_config": "ar_anchor.config",
 }
 

@@ -12,7 +12,8 @@ import numpy as np
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import load_config
-from ar_anchor.sources.synthetic import SyntheticSource, demo_scene
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import demo_scene
 from ar_anchor.track.tracker import Tracker
 
 OUT = Path(__file__).parent / "images"

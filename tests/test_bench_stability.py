@@ -29,7 +29,7 @@ from ar_anchor.bench.stability import (
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import TrackerConfig
 from ar_anchor.geometry import Pose
-from ar_anchor.sources.synthetic import Occluder
+from ar_anchor.synthetic import Occluder
 
 
 def turned(deg: float, z: float = 0.5) -> Pose:

@@ -16,7 +16,8 @@ from ar_anchor.config import BoardConfig, DetectorConfig, TrackerConfig, load_co
 from ar_anchor.errors import CameraError, ConfigError, InputError
 from ar_anchor.geometry import Pose, angle_between_deg, look_at
 from ar_anchor.sources.base import Frame
-from ar_anchor.sources.synthetic import PlacedBoard, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedBoard, SyntheticScene, Trajectory
 from ar_anchor.track.detection import Detector, MarkerDetections
 from ar_anchor.track.pose import BoardPose, BoardSolver, reprojection_rms
 from ar_anchor.track.tracker import Tracker

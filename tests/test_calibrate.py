@@ -26,7 +26,7 @@ import pytest
 from ar_anchor.camera import CameraModel
 from ar_anchor.errors import InputError, OutputError, SourceError
 from ar_anchor.sources.live import Captured
-from ar_anchor.sources.synthetic import _pinhole_canvas
+from ar_anchor.synthetic import pinhole_canvas
 from ar_anchor.tools.calibrate import (
     CharucoSpec,
     View,
@@ -72,7 +72,7 @@ class BoardRenderer:
 
     def __init__(self) -> None:
         self.camera = CameraModel(TRUE_K, TRUE_DIST, WIDTH, HEIGHT)
-        self.pinhole, self.maps = _pinhole_canvas(self.camera)
+        self.pinhole, self.maps = pinhole_canvas(self.camera)
         assert self.maps is not None
         board = spec().build()
         square_px = round(SQUARE_M * TEXELS_PER_M)

@@ -10,7 +10,8 @@ from ar_anchor.boards import read_layout
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import DetectorConfig
 from ar_anchor.geometry import Pose, look_at, marker_corners_in_marker
-from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 from ar_anchor.track.corners import FITTED, NOT_TRIED, REJECTED, fit_corners_by_edges, refine_corners_by_edges
 from ar_anchor.track.detection import Detector
 

@@ -254,7 +254,8 @@ def test_orbiting_camera_commits_fast_and_follows_without_lag():
 
 
 def test_dropout_is_reacquired_without_a_flip_and_never_published_blind():
-    from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+    from ar_anchor.sources.synthetic import SyntheticSource
+    from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
     from ar_anchor.track.tracker import Tracker
 
     # given an orbiting camera (about 45 deg/s at the peak) that loses the marker for 6 frames (0.2 s)
@@ -304,7 +305,8 @@ def test_static_near_marker_jitter_is_far_below_raw():
 
 
 def test_no_filter_is_the_raw_pipeline(camera):
-    from ar_anchor.sources.synthetic import SyntheticSource, demo_scene
+    from ar_anchor.sources.synthetic import SyntheticSource
+    from ar_anchor.synthetic import demo_scene
     from ar_anchor.track.tracker import Tracker
 
     config = demo_config()

@@ -29,7 +29,8 @@ import pytest
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.geometry import Pose
-from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 
 from .fuzzing import CliResult, assert_clean_exit, error_lines, run_main
 

@@ -18,7 +18,8 @@ from ar_anchor.geometry import Pose, look_at
 from ar_anchor.render.models import cube_model, load_mesh, pin_model
 from ar_anchor.render.overlay import OverlayRenderer, target_from_anchor
 from ar_anchor.sources.base import Frame
-from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 from ar_anchor.track.corners import refine_corners_by_edges
 from ar_anchor.track.detection import MarkerDetections
 from ar_anchor.track.tracker import FrameResult, TargetResult, Tracker

@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 
 from ar_anchor.config import DetectorConfig
 from ar_anchor.geometry import Pose, angle_between_deg, marker_corners_in_marker, matrix_from_rvec
-from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedMarker, SyntheticScene
 from ar_anchor.track.detection import Detector
 from ar_anchor.track.pose import MarkerPose, PoseFailure, check_pose, reprojection_rms, solve_marker
 

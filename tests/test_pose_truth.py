@@ -13,7 +13,8 @@ from ar_anchor.camera import CameraModel
 from ar_anchor.config import FilterConfig, MarkersConfig, TrackerConfig
 from ar_anchor.geometry import Pose, angle_between_deg, marker_corners_in_marker, matrix_from_rvec
 from ar_anchor.sources.base import Frame
-from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 from ar_anchor.track.filtering import TargetTrack
 from ar_anchor.track.pose import MarkerPose, PoseHypothesis
 from ar_anchor.track.tracker import Tracker

@@ -25,7 +25,8 @@ import pytest
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.geometry import Pose, angle_between_deg
-from ar_anchor.sources.synthetic import PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 
 pytestmark = pytest.mark.slow
 

@@ -11,7 +11,8 @@ from ar_anchor.camera import CameraModel
 from ar_anchor.config import BoardConfig, DetectorConfig, MarkersConfig, TrackerConfig, demo_config
 from ar_anchor.geometry import Pose, angle_between_deg
 from ar_anchor.sources.base import Frame
-from ar_anchor.sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
 from ar_anchor.track.detection import Detector, Region, plan_regions
 from ar_anchor.track.tracker import Tracker
 

@@ -16,7 +16,8 @@ from ar_anchor.errors import SourceError
 from ar_anchor.sources import ImageFolderSource, VideoFileSource, open_file_source
 from ar_anchor.sources.files import natural_key, to_bgr8
 from ar_anchor.sources.live import Captured, LiveSource, SyntheticGrabber, WebcamGrabber
-from ar_anchor.sources.synthetic import SyntheticSource, demo_scene
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import demo_scene
 
 
 def small_scene(frames: int = 12, fps: float = 30.0):

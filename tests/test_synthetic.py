@@ -9,15 +9,8 @@ import pytest
 
 from ar_anchor.config import BoardConfig, DetectorConfig, demo_config
 from ar_anchor.geometry import Pose, look_at, marker_corners_in_marker
-from ar_anchor.sources.synthetic import (
-    PlacedBoard,
-    PlacedMarker,
-    SyntheticScene,
-    SyntheticSource,
-    Trajectory,
-    board_marker_poses,
-    demo_scene,
-)
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory, board_marker_poses, demo_scene
 from ar_anchor.track.detection import Detector
 
 LENGTH = 0.05
@@ -176,7 +169,7 @@ def test_distorted_cameras_render_unless_the_model_folds_over(k1, renders):
 # ---------------------------------------------------------------------------- hand-held webcam realism
 
 from ar_anchor.geometry import angle_between_deg  # noqa: E402
-from ar_anchor.sources.synthetic import Lighting, Occluder, marker_sheet, webcam_camera  # noqa: E402
+from ar_anchor.synthetic import Lighting, Occluder, marker_sheet, webcam_camera  # noqa: E402
 
 
 def angular_speeds(trajectory: Trajectory, seconds: float, dt: float = 0.001) -> tuple[np.ndarray, list[Pose]]:
@@ -363,9 +356,9 @@ def test_occluder_and_lighting_change_pixels_only_where_and_when_asked():
 
 
 def _skin() -> tuple[float, float, float]:
-    from ar_anchor.sources.synthetic import _SKIN_BGR
+    from ar_anchor.synthetic import SKIN_BGR
 
-    return _SKIN_BGR
+    return SKIN_BGR
 
 
 def test_webcam_camera_and_handheld_defaults_validate():

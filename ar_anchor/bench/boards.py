@@ -20,7 +20,8 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BoardConfig, TrackerConfig
 from ..geometry import Pose
-from ..sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ..sources.synthetic import SyntheticSource
+from ..synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
 from ..track.tracker import Tracker
 from .report import fmt
 from .stability.metrics import series_metrics

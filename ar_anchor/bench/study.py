@@ -49,7 +49,8 @@ from ..config import BoardConfig, TrackerConfig, load_config
 from ..errors import CameraError, InputError, OutputError
 from ..geometry import Pose, angle_between_deg
 from ..sources.base import Frame
-from ..sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ..sources.synthetic import SyntheticSource
+from ..synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
 
 # The tracker (and bench, which imports it) load scipy and filterpy: they are imported where a study
 # runs, so that `ar-anchor`'s parser, which calls configure_parser, stays quick to build.

@@ -485,7 +485,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from ..camera import CameraModel
     from ..errors import SourceError
     from ..run.loop import RunOptions, run_session
-    from ..sources.synthetic import SyntheticSource, Trajectory, demo_scene
+    from ..sources.synthetic import SyntheticSource
+    from ..synthetic import Trajectory, demo_scene
     from ..track.tracker import Tracker
 
     config = _load_tracker_config(args, demo=True)
@@ -584,7 +585,7 @@ def cmd_live(args: argparse.Namespace) -> int:
     from ..errors import CameraError, SourceError
     from ..run.loop import RunOptions, run_session
     from ..sources.live import LiveSource, SyntheticGrabber, WebcamGrabber
-    from ..sources.synthetic import Trajectory, demo_scene
+    from ..synthetic import Trajectory, demo_scene
     from ..track.tracker import Tracker
 
     config = _load_tracker_config(args, demo=args.device == "synthetic")

@@ -8,20 +8,15 @@ from pathlib import Path
 
 from .base import Frame, FrameSource, SourceError
 from .files import IMAGE_EXTENSIONS, ImageFolderSource, VideoFileSource
-from .synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory, demo_scene
+from .synthetic import SyntheticSource
 
 __all__ = [
     "Frame",
     "FrameSource",
     "ImageFolderSource",
-    "PlacedBoard",
-    "PlacedMarker",
     "SourceError",
-    "SyntheticScene",
     "SyntheticSource",
-    "Trajectory",
     "VideoFileSource",
-    "demo_scene",
     "open_file_source",
 ]
 

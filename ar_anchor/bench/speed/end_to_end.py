@@ -15,7 +15,7 @@ import numpy as np
 
 from ...config import TrackerConfig
 from ...geometry import Pose
-from ...sources.synthetic import SyntheticScene
+from ...synthetic import SyntheticScene
 from ...track.tracker import Tracker
 from .measure import TRACKER_STAGES, WARMUP_FRAMES, accuracy, summary_stats
 from .scenes import speed_config

@@ -17,7 +17,7 @@ from ...camera import CameraModel
 from ...config import TrackerConfig, dictionary_id
 from ...geometry import Pose, pose_errors
 from ...sources.base import Frame
-from ...sources.synthetic import SyntheticScene
+from ...synthetic import SyntheticScene
 from ...track.tracker import Tracker
 from ..report import FLIP_DEG
 from .scenes import speed_config

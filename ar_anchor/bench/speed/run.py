@@ -16,7 +16,7 @@ from ...camera import CameraModel
 from ...config import TrackerConfig
 from ...geometry import Pose
 from ...sources.base import Frame
-from ...sources.synthetic import SyntheticScene
+from ...synthetic import SyntheticScene
 from ..report import load_average, machine_info
 from .end_to_end import run_end_to_end
 from .measure import (

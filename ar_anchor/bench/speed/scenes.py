@@ -14,7 +14,8 @@ from ...camera import CameraModel
 from ...config import BoardConfig, TrackerConfig
 from ...geometry import Pose
 from ...sources.base import Frame
-from ...sources.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, SyntheticSource, Trajectory
+from ...sources.synthetic import SyntheticSource
+from ...synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
 
 __all__ = [
     "BLUR",

@@ -16,15 +16,7 @@ from typing import Any
 from ...camera import CameraModel
 from ...config import TrackerConfig
 from ...geometry import Pose
-from ...sources.synthetic import (
-    Lighting,
-    Occluder,
-    PlacedMarker,
-    SyntheticScene,
-    Trajectory,
-    marker_sheet,
-    webcam_camera,
-)
+from ...synthetic import Lighting, Occluder, PlacedMarker, SyntheticScene, Trajectory, marker_sheet, webcam_camera
 
 __all__ = ["Scenario", "handheld_scenarios", "scenario_dict", "stability_scenarios"]
 
