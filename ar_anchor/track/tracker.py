@@ -57,7 +57,7 @@ class TargetResult:
     hypotheses: tuple[PoseHypothesis, ...] = ()
     corners_in_image: np.ndarray | None = None
     branch_poses: tuple[Pose | None, ...] = ()  # this frame's solution on each filter branch
-    evidence_px: float = math.nan  # signed flip evidence (+: branch 0), see filtering.py
+    evidence_px: float = math.nan  # signed flip evidence (+: branch 0), see track/filtering/evidence.py
     events: tuple[TrackEvent, ...] = ()  # filter events this frame (commits, switches, re-acquisitions, resets)
     outline_in_target: np.ndarray | None = None  # (K, 4, 3) the target's marker squares, target frame
     markers_used: tuple[int, ...] = ()  # boards: ids of the inlier markers this frame

@@ -12,6 +12,7 @@ import numpy as np
 from ...camera import CameraModel
 from ...config import FilterConfig
 from ...geometry import Pose, angle_between_deg
+from ...targets import TrackState
 from ..pose import BoardPose, MarkerPose, PoseHypothesis
 from .branches import BranchPair
 from .evidence import FlipEvidence, TrackEvent, raw_pick
@@ -25,7 +26,7 @@ __all__ = ["TargetTrack", "TrackUpdate"]
 class TrackUpdate:
     """The track's answer for one frame."""
 
-    state: str  # tracked | ambiguous | predicted
+    state: TrackState
     pose: Pose
     branch: int  # the output branch (0 or 1)
     committed: bool
@@ -103,7 +104,7 @@ class TargetTrack:
             assigned[1].pose if assigned[1] is not None else None,
         )
         self._was_tracked = vouched
-        update = self._result("tracked" if vouched else "ambiguous", pose, hypotheses, events)
+        update = self._result(TrackState.TRACKED if vouched else TrackState.AMBIGUOUS, pose, hypotheses, events)
         self._output = pose
         return update
 
@@ -298,7 +299,7 @@ class TargetTrack:
             return None  # not trustworthy: publish nothing rather than a guess
         rotation = self._output.rotation @ so3_exp(omega * reach)
         pose = Pose.from_matrix(rotation, self._output.tvec + velocity * reach)
-        return self._result("predicted", pose, (None, None), events)
+        return self._result(TrackState.PREDICTED, pose, (None, None), events)
 
     def _prediction_doubt(self, omega: np.ndarray, gap_s: float, reach_s: float) -> float:
         """How much more a prediction over ``gap_s`` may be off than the last measured output (radians):
@@ -315,7 +316,7 @@ class TargetTrack:
         return math.degrees(3.0 * sigma) > self.config.flip_angle_deg
 
     def _result(
-        self, state: str, pose: Pose, hypotheses: tuple[Pose | None, Pose | None], events: list[TrackEvent]
+        self, state: TrackState, pose: Pose, hypotheses: tuple[Pose | None, Pose | None], events: list[TrackEvent]
     ) -> TrackUpdate:
         return TrackUpdate(
             state,
