@@ -2,7 +2,7 @@
 
 The public API is importable from the top level (loaded lazily, so ``ar-anchor --help`` stays fast)::
 
-    from ar_anchor import CameraModel, Tracker, load_config
+    from ar_anchor import CameraModel, Tracker, load_config, open_source
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ _EXPORTS = {
     "FrameResult": "ar_anchor.track.tracker",
     "FrameSource": "ar_anchor.sources.base",
     "Pose": "ar_anchor.geometry",
+    "SourceInfo": "ar_anchor.sources.base",
     "SyntheticScene": "ar_anchor.synthetic",
     "SyntheticSource": "ar_anchor.sources.synthetic",
     "TargetResult": "ar_anchor.track.tracker",
@@ -25,6 +26,7 @@ _EXPORTS = {
     "TrackerConfig": "ar_anchor.config",
     "demo_scene": "ar_anchor.synthetic",
     "load_config": "ar_anchor.config",
+    "open_source": "ar_anchor.sources.open",
 }
 
 __all__ = [*_EXPORTS, "__version__"]

@@ -1,15 +1,30 @@
-"""The run loop's threads (ar_anchor.run.threads) and what the run reports about them."""
+"""The run loop's threads (ar_anchor.run.threads), the outputs it owns (ar_anchor.run.run_outputs) and the
+loop itself (ar_anchor.run.loop), without the CLI around them."""
 
 from __future__ import annotations
 
+import csv
+import json
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from ar_anchor.camera import CameraModel
+from ar_anchor.config import demo_config
+from ar_anchor.render.video import AnnotatedVideoWriter
+from ar_anchor.run.loop import run_session
+from ar_anchor.run.options import RunOptions
+from ar_anchor.run.outputs import PosesCsvWriter, RawVideoWriter
+from ar_anchor.run.run_outputs import RunOutputs, close_in_order
 from ar_anchor.run.threads import OutputStage, Prefetcher
-from ar_anchor.sources.base import Frame
+from ar_anchor.sources.base import Frame, SourceInfo
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import demo_scene
+from ar_anchor.track.tracker import Tracker
+from ar_anchor.viz.recorder import RerunRecorder
 
 
 def frames(count: int, fail_at: int | None = None):
@@ -84,3 +99,113 @@ def test_output_stage_error_reaches_the_submitting_thread():
             stage.submit(frame, None, {}, block=True)
             time.sleep(0.001)
     stage.close()  # the error was raised once; closing afterwards is clean
+
+
+# ---------------------------------------------------------------------------- the outputs and the loop
+
+
+def small_scene(frames: int = 8):
+    return demo_scene(demo_config(), CameraModel.from_fov(320, 240, 300.0), frames=frames, blur_sigma=0.0)
+
+
+class FailingSource:
+    """A synthetic source whose stream breaks (``error``) when frame ``fail_at`` is due."""
+
+    def __init__(self, scene, fail_at: int, error: BaseException) -> None:
+        self._source = SyntheticSource(scene)
+        self.fail_at, self.error = fail_at, error
+        self.resolution, self.camera, self.info = self._source.resolution, scene.camera, self._source.info
+
+    def __iter__(self):
+        for frame in self._source:
+            if frame.index == self.fail_at:
+                raise self.error
+            yield frame
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        self._source.close()
+
+
+def test_close_in_order_takes_every_step_and_raises_the_last_failure_chained_to_the_earlier():
+    calls: list[str] = []
+
+    def step(name: str, error: BaseException | None = None):
+        def run():
+            calls.append(name)
+            if error is not None:
+                raise error
+
+        return run
+
+    first, last = OSError("video"), ValueError("recording")
+    with pytest.raises(ValueError, match="recording") as info:
+        close_in_order([step("a"), step("b", first), step("c"), step("d", last)])
+    assert calls == ["a", "b", "c", "d"]
+    assert info.value.__context__ is first
+
+
+def test_run_outputs_close_in_their_documented_order_even_when_one_fails(tmp_path, monkeypatch):
+    # given every output of a run open, and an annotated video that fails to finalise
+    closed: list[str] = []
+    for cls in (OutputStage, AnnotatedVideoWriter, RawVideoWriter, PosesCsvWriter, RerunRecorder):
+        original = cls.close
+
+        def close(self, *args, _original=original, _name=cls.__name__, **kwargs):
+            closed.append(_name)
+            if _name == "AnnotatedVideoWriter":
+                _original(self, *args, **kwargs)
+                raise OSError("disk full")
+            return _original(self, *args, **kwargs)
+
+        monkeypatch.setattr(cls, "close", close)
+    scene = small_scene()
+    options = RunOptions(record_raw=True, video_out=tmp_path / "annotated.mp4")
+    outputs = RunOutputs(tmp_path, options)
+    outputs.open(scene.camera, demo_config().recording, SourceInfo(), renderer=None)
+    # when they are closed
+    with pytest.raises(OSError, match="disk full"):
+        outputs.close()
+    # then the output thread stopped first, the recording closed last, and none was skipped
+    assert closed == ["OutputStage", "AnnotatedVideoWriter", "RawVideoWriter", "PosesCsvWriter", "RerunRecorder"]
+    outputs.close()  # closing again does nothing
+    assert len(closed) == 5
+    summary = outputs.write_summary("failed", 1.0, {"extra": 1})
+    assert summary["status"] == "failed" and summary["video_out"]["frames"] == 0 and summary["extra"] == 1
+    assert json.loads((tmp_path / "summary.json").read_text()) == summary
+
+
+@pytest.mark.parametrize(
+    ("error", "status"), [(OSError("decoder broke"), "failed"), (KeyboardInterrupt(), "interrupted")]
+)
+def test_a_run_that_breaks_leaves_every_output_complete_and_says_how_it_ended(tmp_path, error, status):
+    # given a source whose stream breaks at frame 5
+    scene = small_scene(frames=8)
+    source = FailingSource(scene, fail_at=5, error=error)
+    # when a run reads it
+    with pytest.raises(type(error)):
+        run_session(source, Tracker(demo_config(), scene.camera), tmp_path / "out", RunOptions(record_raw=True))
+    # then poses.csv, raw.mkv and the summary agree on the five frames before, and the summary says why it ended
+    out = tmp_path / "out"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == status and summary["frames"] == 5 and summary["frames_logged"] == 5
+    with (out / "poses.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert rows and {int(row["frame"]) for row in rows} <= {0, 1, 2, 3, 4}
+    with (out / "raw.mkv.timestamps.csv").open() as handle:
+        assert [int(row["frame"]) for row in csv.DictReader(handle)] == [0, 1, 2, 3, 4]
+    assert (out / "recording.rrd").stat().st_size > 0
+
+
+def test_a_completed_run_reports_where_its_outputs_are(tmp_path):
+    scene = small_scene(frames=4)
+    with SyntheticSource(scene) as source:
+        result = run_session(source, Tracker(demo_config(), scene.camera), tmp_path, RunOptions(max_frames=3))
+    assert result.summary["status"] == "completed" and result.summary["frames"] == 3
+    assert (result.out_dir, result.poses_csv, result.raw_video) == (tmp_path, tmp_path / "poses.csv", None)
+    assert Path(result.summary_json).is_file() and Path(result.recording_rrd).is_file()

@@ -1,4 +1,4 @@
-"""Frame sources: image folders, video files, and the live capture thread."""
+"""Frame sources: image folders, video files, the live capture thread, and open_source over all of them."""
 
 from __future__ import annotations
 
@@ -13,9 +13,17 @@ import pytest
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import demo_config
 from ar_anchor.errors import SourceError
-from ar_anchor.sources import ImageFolderSource, VideoFileSource, open_file_source
+from ar_anchor.sources import (
+    DeviceSettings,
+    FrameSource,
+    ImageFolderSource,
+    SourceInfo,
+    VideoFileSource,
+    open_source,
+)
 from ar_anchor.sources.files import natural_key, to_bgr8
 from ar_anchor.sources.live import Captured, LiveSource, SyntheticGrabber, WebcamGrabber
+from ar_anchor.sources.open import live_demo_scene
 from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import demo_scene
 
@@ -72,9 +80,10 @@ def test_image_folder_order_timestamps_and_bad_files(tmp_path, caplog):
 def test_image_glob_selects_matching_files(tmp_path):
     for name in ("a_1.png", "a_2.png", "b_1.png"):
         cv2.imwrite(str(tmp_path / name), np.zeros((8, 8, 3), np.uint8))
-    source = open_file_source(str(tmp_path / "a_*.png"))
+    source = open_source(str(tmp_path / "a_*.png"))
     assert isinstance(source, ImageFolderSource)
     assert [p.name for p in source.files] == ["a_1.png", "a_2.png"]
+    assert source.info == SourceInfo(fps=30.0, frame_count=2)
 
 
 @pytest.mark.parametrize(
@@ -115,8 +124,10 @@ def test_lossless_video_round_trip_with_container_timestamps(tmp_path):
     write_video(tmp_path / "clip.mkv", images, fps=25.0)
     with VideoFileSource(tmp_path / "clip.mkv") as source:
         frames = list(source)
-        assert source.fps == pytest.approx(25.0)
-        assert source.references_original_frames
+        info = source.info
+    assert not info.live and info.fps == pytest.approx(25.0) and info.frame_count == 10
+    assert info.video_path == tmp_path / "clip.mkv"  # its frames are the file's: a recording can reference it
+    assert not info.ended_early
     assert [f.index for f in frames] == list(range(10))
     assert all(np.array_equal(f.image, images[f.index]) for f in frames)  # lossless: the same pixels
     np.testing.assert_allclose([f.timestamp_ns for f in frames], np.arange(10) * 40e6, atol=1.5e6)
@@ -128,7 +139,7 @@ def test_recorded_timestamps_beside_a_video_restore_indices_and_times(tmp_path):
     (tmp_path / "raw.mkv.timestamps.csv").write_text("frame,timestamp_ns\n3,100\n5,250\n6,300\n9,700\n")
     with VideoFileSource(tmp_path / "raw.mkv") as source:
         frames = list(source)
-        assert not source.references_original_frames
+        assert source.info.video_path is None  # recorded indices replace the decode positions
     assert [(f.index, f.timestamp_ns) for f in frames] == [(3, 100), (5, 250), (6, 300), (9, 700)]
 
 
@@ -153,8 +164,9 @@ def test_truncated_video_ends_at_the_last_good_frame_with_a_warning(tmp_path, ca
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
     with caplog.at_level(logging.WARNING), VideoFileSource(path) as source:
+        assert not source.info.ended_early
         frames = list(source)
-        assert source.ended_early
+        assert source.info.ended_early
     assert 5 < len(frames) < 30
     assert [f.index for f in frames] == list(range(len(frames)))
     assert f"after frame {len(frames) - 1}" in caplog.text and str(path) in caplog.text
@@ -167,6 +179,7 @@ class FakeGrabber:
     """A camera at ``fps`` whose timestamps can be scripted; ``fail_after`` frames it vanishes."""
 
     name = "fake"
+    granted: dict[str, object] = {}
 
     def __init__(self, fps: float = 200.0, fail_after: int | None = None, timestamps: list[int] | None = None):
         self.fps = fps
@@ -318,3 +331,68 @@ def test_webcam_grabber_code_path_with_a_video_file_standing_in_for_the_device(t
     assert grabber.granted["width"] == 320 and grabber.granted["height"] == 240
     assert all(np.array_equal(f.image, images[i]) for i, f in enumerate(frames))
     assert np.all(np.diff([f.timestamp_ns for f in frames]) > 0)
+
+
+# ---------------------------------------------------------------------------- what a source is, and open_source
+
+
+def test_every_source_declares_what_it_is(tmp_path):
+    write_video(tmp_path / "clip.mkv", synthetic_images(3), fps=25.0)
+    cv2.imwrite(str(tmp_path / "shot.png"), np.zeros((8, 8, 3), np.uint8))
+    scene = small_scene(frames=5, fps=20.0)
+    with (
+        SyntheticSource(scene) as synthetic,
+        VideoFileSource(tmp_path / "clip.mkv") as video,
+        ImageFolderSource(tmp_path / "shot.png", fps=5.0) as image,
+        LiveSource(FakeGrabber(), fps=50.0) as live,
+    ):
+        assert all(isinstance(source, FrameSource) for source in (synthetic, video, image, live))
+        assert synthetic.info == SourceInfo(fps=20.0, frame_count=5)
+        assert video.info == SourceInfo(fps=pytest.approx(25.0), frame_count=3, video_path=tmp_path / "clip.mkv")
+        assert image.info == SourceInfo(fps=5.0, frame_count=1)
+        assert live.info == SourceInfo(live=True, fps=50.0)
+
+
+def test_open_source_reads_folders_globs_images_and_videos(tmp_path):
+    for index in range(3):
+        cv2.imwrite(str(tmp_path / f"frame_{index}.png"), np.full((8, 8, 3), index, np.uint8))
+    write_video(tmp_path / "clip.mkv", synthetic_images(2))
+    with open_source(tmp_path, fps=12.0) as folder:
+        assert isinstance(folder, ImageFolderSource) and folder.info == SourceInfo(fps=12.0, frame_count=3)
+    with open_source(tmp_path / "frame_1.png") as image:
+        assert isinstance(image, ImageFolderSource) and image.info.frame_count == 1
+    with open_source(str(tmp_path / "clip.mkv")) as video:
+        assert isinstance(video, VideoFileSource) and len(list(video)) == 2
+
+
+def test_open_source_reads_device_specs_as_devices_unless_told_they_are_paths(tmp_path, monkeypatch):
+    # given a machine with two cameras, neither of them /dev/video77
+    monkeypatch.setattr("ar_anchor.sources.live.video_devices", lambda: ["/dev/video0", "/dev/video2"])
+    with pytest.raises(SourceError, match=r"/dev/video77: no such video device .*/dev/video0, /dev/video2"):
+        open_source("/dev/video77")
+    # live=False: the spec is a path, even one that looks like a device or the synthetic camera
+    monkeypatch.chdir(tmp_path)
+    for spec in ("synthetic", "7"):
+        with pytest.raises(SourceError, match=f"{spec}: not found"):
+            open_source(spec, live=False)
+    # live=True: the spec is a device, even an existing file
+    write_video(tmp_path / "clip.mkv", synthetic_images(2))
+    with pytest.raises(SourceError, match="cannot be opened as a V4L2 camera"):
+        open_source(str(tmp_path / "clip.mkv"), live=True)
+
+
+def test_open_source_synthetic_is_the_scene_in_real_time_with_its_camera_and_truth():
+    scene = small_scene(frames=6, fps=30.0)
+    with open_source("synthetic", scene=scene, device=DeviceSettings(queue_size=2)) as source:
+        assert isinstance(source, LiveSource) and source.queue_size == 2
+        assert source.info == SourceInfo(live=True, fps=30.0)
+        assert source.camera is scene.camera and source.resolution == scene.camera.size
+        frame = next(iter(source))
+    assert frame.truth and frame.image.shape == (240, 320, 3)
+
+
+def test_the_synthetic_cameras_default_scene_orbits_the_demo_targets_for_20_seconds():
+    scene = live_demo_scene(fps=10.0, seed=3)
+    assert (scene.frames, scene.fps, scene.seed) == (200, 10.0, 3)
+    assert scene.camera.size == CameraModel.default_synthetic().size
+    assert scene.trajectory.kind == "orbit"

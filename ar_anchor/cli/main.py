@@ -484,7 +484,8 @@ def _finish(args: argparse.Namespace, outputs: Any) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from ..camera import CameraModel
     from ..errors import SourceError
-    from ..run.loop import RunOptions, run_session
+    from ..run.loop import run_session
+    from ..run.options import RunOptions
     from ..sources.synthetic import SyntheticSource
     from ..synthetic import Trajectory, demo_scene
     from ..track.tracker import Tracker
@@ -525,36 +526,39 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return _finish(args, outputs)
 
 
+def _replay_camera(args: argparse.Namespace) -> Path:
+    """``--camera``, or the ``camera.yml`` beside the source (as ``live --record`` leaves it)."""
+    from ..errors import CameraError
+
+    if args.camera is not None:
+        return args.camera
+    beside = Path(args.source).parent / "camera.yml"
+    if not beside.is_file():
+        raise CameraError(
+            f"--camera FILE is required: the calibration of the camera that took {args.source} (none found at {beside})"
+        )
+    log.warning("using %s, found beside the source", beside)
+    return beside
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from ..camera import CameraModel
-    from ..errors import CameraError
-    from ..run.loop import RunOptions, run_session
-    from ..sources import open_file_source
+    from ..run.loop import run_session
+    from ..run.options import RunOptions
+    from ..sources import open_source
     from ..track.tracker import Tracker
 
     config = _load_tracker_config(args)
-    source = open_file_source(args.source, fps=args.fps)
-    with source:
-        camera_path = args.camera
-        if camera_path is None:
-            beside = Path(args.source).parent / "camera.yml"
-            if not beside.is_file():
-                raise CameraError(
-                    f"--camera FILE is required: the calibration of the camera that took {args.source} "
-                    f"(none found at {beside})"
-                )
-            log.warning("using %s, found beside the source", beside)
-            camera_path = beside
+    with open_source(args.source, live=False, fps=args.fps) as source:
+        camera_path = _replay_camera(args)
         camera = _camera_for_source(CameraModel.from_yaml(camera_path), source.resolution, f"--camera {camera_path}")
-        video = Path(args.source) if getattr(source, "references_original_frames", False) else None
         options = RunOptions(
             max_frames=args.max_frames,
             spawn=args.spawn,
             recording_name=f"ar_anchor replay {args.source}",
-            video_asset=video,
             video_out=args.video_out,
             overlays=not args.no_overlay,
-            record_fps=getattr(source, "fps", None) or 30.0,
+            record_fps=source.info.fps or 30.0,
             extra_summary={"command": "replay", "source": str(args.source)},
         )
         progress = _Progress(not args.quiet, "replay")
@@ -565,12 +569,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 args.out or _default_out("replay"),
                 options,
                 progress=progress,
-                summary_extras=lambda: {"source_ended_early": bool(getattr(source, "ended_early", False))},
+                summary_extras=lambda: {"source_ended_early": source.info.ended_early},
             )
         finally:
             progress.close()
     code = _finish(args, outputs)
-    if getattr(source, "ended_early", False):
+    if source.info.ended_early:
         print(
             f"ar-anchor: error: {args.source}: the stream ended early (damaged or truncated file); outputs cover "
             f"the {outputs.summary['frames']} frames read before that",
@@ -580,50 +584,62 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return code
 
 
-def cmd_live(args: argparse.Namespace) -> int:
+def _synthetic_camera_scene(args: argparse.Namespace, config: Any) -> Any:
+    """What ``live --device synthetic`` shows: the demo scene through ``--camera`` (default the synthetic
+    camera) at ``--width``/``--height``, at ``--fps`` (default 30)."""
     from ..camera import CameraModel
     from ..errors import CameraError, SourceError
-    from ..run.loop import RunOptions, run_session
-    from ..sources.live import LiveSource, SyntheticGrabber, WebcamGrabber
-    from ..synthetic import Trajectory, demo_scene
+    from ..sources.live import CLIP_FRAMES
+    from ..sources.open import live_demo_scene
+
+    camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
+    if args.width or args.height:
+        size = (args.width or camera.width, args.height or camera.height)
+        try:
+            camera = camera.scaled_to(*size, warn=False)  # the size asked for: no warning
+        except CameraError as err:
+            raise CameraError(f"--width/--height: {err}") from None
+    try:
+        scene = live_demo_scene(config, camera, fps=args.fps or 30.0, seed=args.seed)
+    except SourceError as err:
+        raise SourceError(f"--camera {args.camera}: {err}") from None
+    if not args.quiet:
+        count = min(CLIP_FRAMES, scene.frames)
+        print(f"live: rendering the synthetic camera's {count} frames ...", file=sys.stderr, flush=True)
+    return scene
+
+
+def _print_live_counts(stats: dict[str, Any]) -> None:
+    print(
+        f"live: {stats['captured']} frames captured, {stats['delivered']} tracked, {stats['dropped_queue']} "
+        f"dropped (tracker busy), {stats['dropped_non_monotonic']} dropped (timestamps)"
+        + (f"; ended: {stats['ended_because']}" if stats["ended_because"] else "")
+    )
+
+
+def cmd_live(args: argparse.Namespace) -> int:
+    from ..camera import CameraModel
+    from ..errors import CameraError
+    from ..run.loop import run_session
+    from ..run.options import RunOptions
+    from ..sources.open import SYNTHETIC, DeviceSettings, open_source
     from ..track.tracker import Tracker
 
-    config = _load_tracker_config(args, demo=args.device == "synthetic")
-    fps = args.fps or 30.0
-    if args.device == "synthetic":
-        render_camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
-        if args.width or args.height:
-            size = (args.width or render_camera.width, args.height or render_camera.height)
-            try:
-                render_camera = render_camera.scaled_to(*size, warn=False)  # the size asked for: no warning
-            except CameraError as err:
-                raise CameraError(f"--width/--height: {err}") from None
-        try:
-            scene = demo_scene(
-                config,
-                render_camera,
-                frames=max(int(20 * fps), 2),
-                seed=args.seed,
-                fps=fps,
-                trajectory=Trajectory(kind="orbit", near_m=0.5, look_at=(-0.01, 0.0, 0.0)),
-            )
-        except SourceError as err:
-            raise SourceError(f"--camera {args.camera}: {err}") from None
-        grabber = SyntheticGrabber(scene, loop=True)
-        if not args.quiet:
-            print(f"live: rendering the synthetic camera's {grabber.cached} frames ...", file=sys.stderr, flush=True)
-        device_camera: CameraModel | None = render_camera
-    else:
-        grabber = WebcamGrabber(args.device, width=args.width, height=args.height, fps=args.fps, fourcc=args.fourcc)
-        device_camera = None
-    source = LiveSource(
-        grabber, queue_size=args.queue, reconnect_s=args.reconnect_s, stall_s=args.stall_s, camera=device_camera
+    config = _load_tracker_config(args, demo=args.device == SYNTHETIC)
+    scene = _synthetic_camera_scene(args, config) if args.device == SYNTHETIC else None
+    device = DeviceSettings(
+        width=args.width,
+        height=args.height,
+        fourcc=args.fourcc,
+        queue_size=args.queue,
+        reconnect_s=args.reconnect_s,
+        stall_s=args.stall_s,
     )
+    source = open_source(args.device, live=True, fps=args.fps, device=device, scene=scene)
     try:
-        if args.camera is None and device_camera is None:
+        if args.camera is None and source.camera is None:
             raise CameraError("--camera FILE is required for a real camera (its calibration: see the README)")
-        camera_file = CameraModel.from_yaml(args.camera) if args.camera else device_camera
-        assert camera_file is not None
+        camera_file = CameraModel.from_yaml(args.camera) if args.camera else source.camera
         camera = _camera_for_source(camera_file, source.resolution, f"--camera {args.camera}")
         out_dir = args.out or _default_out("live")
         options = RunOptions(
@@ -632,10 +648,10 @@ def cmd_live(args: argparse.Namespace) -> int:
             connect=args.connect,
             recording_name=f"ar_anchor live {args.device}",
             record_raw=args.record,
-            record_fps=fps,
+            record_fps=source.info.fps or 30.0,
             video_out=args.video_out,
             overlays=not args.no_overlay,
-            extra_summary={"command": "live", "device": str(args.device), "granted": getattr(grabber, "granted", {})},
+            extra_summary={"command": "live", "device": str(args.device), "granted": dict(source.grabber.granted)},
             output_queue=3,  # live: a late logger skips frames rather than holding many (6 MB each at 1080p)
         )
         if args.record:
@@ -656,13 +672,8 @@ def cmd_live(args: argparse.Namespace) -> int:
             status.close()
     finally:
         source.close()
-    stats = source.stats.as_dict()
     if not args.quiet:
-        print(
-            f"live: {stats['captured']} frames captured, {stats['delivered']} tracked, {stats['dropped_queue']} "
-            f"dropped (tracker busy), {stats['dropped_non_monotonic']} dropped (timestamps)"
-            + (f"; ended: {stats['ended_because']}" if stats["ended_because"] else "")
-        )
+        _print_live_counts(source.stats.as_dict())
     return _finish(args, outputs)
 
 

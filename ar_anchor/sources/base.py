@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import TracebackType
 from typing import Protocol, runtime_checkable
 
@@ -13,7 +14,7 @@ from ..camera import CameraModel
 from ..errors import SourceError
 from ..geometry import Pose
 
-__all__ = ["Frame", "FrameSource", "SourceError"]
+__all__ = ["Frame", "FrameSource", "SourceError", "SourceInfo"]
 
 
 @dataclass(frozen=True)
@@ -56,12 +57,35 @@ class Frame:
         return self.image.shape[1], self.image.shape[0]
 
 
+@dataclass(frozen=True)
+class SourceInfo:
+    """What a source is, as it declares it (:attr:`FrameSource.info`); a snapshot, taken when asked.
+
+    Attributes
+    ----------
+    live : frames come from a device at its own pace (a capture thread hands over the newest): the run
+        loop neither reads ahead of it nor makes it wait for the outputs.
+    fps : nominal frame rate (the container's, the one asked of a device or an image sequence's), None when unknown.
+    frame_count : frames in the stream, None when unknown or endless (live).
+    video_path : a video file whose frame ``i`` is this source's frame ``i`` (a recording can reference it
+        instead of holding the images); None otherwise.
+    ended_early : the stream stopped before its announced end (a damaged or truncated file).
+    """
+
+    live: bool = False
+    fps: float | None = None
+    frame_count: int | None = None
+    video_path: Path | None = None
+    ended_early: bool = False
+
+
 @runtime_checkable
 class FrameSource(Protocol):
     """An iterator of :class:`Frame` and a context manager that releases the device or file.
 
     End of stream ends the iteration. ``resolution`` is (width, height); ``camera`` is the
-    source's own calibration when it knows one (synthetic renders), else None.
+    source's own calibration when it knows one (synthetic renders), else None; ``info`` declares
+    the rest of what the source is (:class:`SourceInfo`).
     """
 
     @property
@@ -71,7 +95,7 @@ class FrameSource(Protocol):
     def camera(self) -> CameraModel | None: ...
 
     @property
-    def frame_count(self) -> int | None: ...
+    def info(self) -> SourceInfo: ...
 
     def __iter__(self) -> Iterator[Frame]: ...
 

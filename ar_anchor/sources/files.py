@@ -27,7 +27,7 @@ import numpy as np
 
 from ..camera import CameraModel, opencv_path_problem
 from ..errors import SourceError
-from .base import Frame
+from .base import Frame, SourceInfo
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -164,14 +164,11 @@ class VideoFileSource(_FileSourceBase):
         self._first = first
         self._resolution = (first.shape[1], first.shape[0])
         fps = self._capture.get(cv2.CAP_PROP_FPS)
-        self.fps: float | None = fps if math.isfinite(fps) and fps > 0 else None
+        self._fps: float | None = fps if math.isfinite(fps) and fps > 0 else None
         count = int(self._capture.get(cv2.CAP_PROP_FRAME_COUNT))
         self._count: int | None = count if count > 0 else None
-        fourcc = int(self._capture.get(cv2.CAP_PROP_FOURCC))
-        self.fourcc = fourcc.to_bytes(4, "little").decode("ascii", "replace").strip("\x00 ") if fourcc > 0 else ""
         self._first_ms = self._capture.get(cv2.CAP_PROP_POS_MSEC)
-        self.last_index: int | None = None
-        self.ended_early = False
+        self._ended_early = False
 
     def _read(self) -> tuple[bool, np.ndarray | None]:
         try:
@@ -186,13 +183,15 @@ class VideoFileSource(_FileSourceBase):
         return self._resolution
 
     @property
-    def frame_count(self) -> int | None:
-        return self._count
-
-    @property
-    def references_original_frames(self) -> bool:
-        """Frame ``index`` is the decode position in this file (no recorded indices replace it)."""
-        return self._recorded is None
+    def info(self) -> SourceInfo:
+        """The container's frame rate and count; ``video_path`` is this file unless recorded indices replace
+        the decode positions (``<video>.timestamps.csv``)."""
+        return SourceInfo(
+            fps=self._fps,
+            frame_count=self._count,
+            video_path=self.path if self._recorded is None else None,
+            ended_early=self._ended_early,
+        )
 
     def close(self) -> None:
         self._capture.release()
@@ -212,10 +211,9 @@ class VideoFileSource(_FileSourceBase):
                     image.shape[0],
                     *self._resolution,
                 )
-                self.ended_early = True
+                self._ended_early = True
                 return
             previous_ns = timestamp_ns
-            self.last_index = index
             yield Frame(image, frame_index, timestamp_ns)
             index += 1
             ok, image = self._read()
@@ -228,7 +226,7 @@ class VideoFileSource(_FileSourceBase):
                     self._count,
                     index - 1,
                 )
-                self.ended_early = True
+                self._ended_early = True
 
     def _timestamp(self, index: int, position_ms: float, previous_ns: int | None) -> tuple[int, int]:
         if self._recorded is not None and index < len(self._recorded):
@@ -240,7 +238,7 @@ class VideoFileSource(_FileSourceBase):
         timestamp_ns = int(round((position_ms - self._first_ms) * 1e6)) if math.isfinite(position_ms) else -1
         if previous_ns is not None and timestamp_ns <= previous_ns:
             # containers without usable timestamps: fall back to the nominal frame rate
-            step = int(round(1e9 / self.fps)) if self.fps else 33_333_333
+            step = int(round(1e9 / self._fps)) if self._fps else 33_333_333
             timestamp_ns = previous_ns + step
         return index, max(timestamp_ns, 0)
 
@@ -255,7 +253,7 @@ class ImageFolderSource(_FileSourceBase):
     def __init__(self, spec: str | os.PathLike[str], *, fps: float = 30.0) -> None:
         if not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):  # else timestamps overflow or all round to 0
             raise SourceError(f"--fps: must be in [{MIN_FPS:g}, {MAX_FPS:g}], got {fps:g}")
-        self.fps = fps
+        self._fps = fps
         self.spec = os.fspath(spec)
         path = Path(self.spec)
         if path.is_dir():
@@ -302,8 +300,8 @@ class ImageFolderSource(_FileSourceBase):
         return self._resolution
 
     @property
-    def frame_count(self) -> int:
-        return len(self.files)
+    def info(self) -> SourceInfo:
+        return SourceInfo(fps=self._fps, frame_count=len(self.files))
 
     def close(self) -> None:
         pass
@@ -328,4 +326,4 @@ class ImageFolderSource(_FileSourceBase):
                 )
                 self.skipped += 1
                 continue
-            yield Frame(image, index, int(round(index * 1e9 / self.fps)))
+            yield Frame(image, index, int(round(index * 1e9 / self._fps)))

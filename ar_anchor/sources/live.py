@@ -27,13 +27,24 @@ import numpy as np
 from ..camera import CameraModel
 from ..errors import SourceError
 from ..geometry import Pose
-from .base import Frame
+from .base import Frame, SourceInfo
 from .files import to_bgr8
 from .synthetic import SyntheticScene, SyntheticSource
 
-__all__ = ["Captured", "Grabber", "LiveSource", "LiveStats", "SyntheticGrabber", "WebcamGrabber", "video_devices"]
+__all__ = [
+    "CLIP_FRAMES",
+    "Captured",
+    "Grabber",
+    "LiveSource",
+    "LiveStats",
+    "SyntheticGrabber",
+    "WebcamGrabber",
+    "video_devices",
+]
 
 log = logging.getLogger(__name__)
+
+CLIP_FRAMES = 60  # frames the synthetic camera renders when it opens (see SyntheticGrabber)
 
 
 @dataclass(frozen=True)
@@ -46,9 +57,13 @@ class Captured:
 
 
 class Grabber(Protocol):
-    """A device the capture thread reads from. ``read`` returns None when the device failed."""
+    """A device the capture thread reads from. ``read`` returns None when the device failed.
+
+    ``granted``: the settings the device accepted when it opened (width, height, fps, fourcc), empty
+    for a device that has none to negotiate."""
 
     name: str
+    granted: Mapping[str, object]
 
     def open(self) -> tuple[int, int]: ...
 
@@ -80,8 +95,8 @@ class LiveStats:
 
 
 class LiveSource:
-    """A :class:`~ar_anchor.sources.base.FrameSource` fed by a capture thread (``live``: the run loop
-    must not make it wait; it hands over the newest frame itself, so it is not prefetched).
+    """A :class:`~ar_anchor.sources.base.FrameSource` fed by a capture thread (``info.live``: the run
+    loop must not make it wait; it hands over the newest frame itself, so it is not prefetched).
 
     Parameters
     ----------
@@ -90,9 +105,8 @@ class LiveSource:
     reconnect_s : how long to keep trying to reopen a device that stopped delivering.
     stall_s : how long the consumer waits for a frame before it gives up on the device.
     camera : the device's own calibration when it has one (synthetic), else None.
+    fps : the frame rate asked of the device (``info.fps``), None when it runs at its own default.
     """
-
-    live = True
 
     def __init__(
         self,
@@ -102,6 +116,7 @@ class LiveSource:
         reconnect_s: float = 5.0,
         stall_s: float = 10.0,
         camera: CameraModel | None = None,
+        fps: float | None = None,
     ) -> None:
         if queue_size < 1:
             raise ValueError("queue_size must be >= 1")
@@ -110,6 +125,7 @@ class LiveSource:
         self.reconnect_s = reconnect_s
         self.stall_s = stall_s
         self.camera = camera
+        self._fps = fps
         self.stats = LiveStats()
         self._resolution = grabber.open()
         self._buffer: collections.deque[Frame] = collections.deque()
@@ -123,8 +139,8 @@ class LiveSource:
         return self._resolution
 
     @property
-    def frame_count(self) -> None:
-        return None
+    def info(self) -> SourceInfo:
+        return SourceInfo(live=True, fps=self._fps)
 
     def __enter__(self) -> LiveSource:
         self.start()
@@ -344,9 +360,10 @@ class SyntheticGrabber:
 
     name = "synthetic"
 
-    def __init__(self, scene: SyntheticScene, *, loop: bool = True, cached: int = 60) -> None:
+    def __init__(self, scene: SyntheticScene, *, loop: bool = True, cached: int = CLIP_FRAMES) -> None:
         self.source = SyntheticSource(scene)
         self.scene = scene
+        self.granted: Mapping[str, object] = {}  # nothing to negotiate: it renders at the scene's size and rate
         self.loop = loop
         self.cached = min(max(int(cached), 0), scene.frames)
         self._clip: list[tuple[bytes, Mapping[str, Pose] | None]] = []

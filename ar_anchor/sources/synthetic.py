@@ -18,7 +18,7 @@ from ..camera import CameraModel
 from ..geometry import Pose
 from ..synthetic.render import H264RoundTrip, Renderer
 from ..synthetic.scene import SyntheticScene
-from .base import Frame
+from .base import Frame, SourceInfo
 
 __all__ = ["SyntheticSource"]
 
@@ -45,8 +45,8 @@ class SyntheticSource:
         return self.scene.camera
 
     @property
-    def frame_count(self) -> int:
-        return self.scene.frames
+    def info(self) -> SourceInfo:
+        return SourceInfo(fps=self.scene.fps, frame_count=self.scene.frames)
 
     def __enter__(self) -> SyntheticSource:
         return self

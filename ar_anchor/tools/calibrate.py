@@ -715,11 +715,11 @@ def _gather_files(
     source: str, detector: ViewDetector, max_views: int, progress: Progress | None
 ) -> tuple[list[View], list[Rejection], int, tuple[int, int], int]:
     """Detect in the (sampled) frames of a folder, glob or video: (views, rejections, considered, size, step)."""
-    from ..sources import open_file_source
+    from ..sources import open_source
     from ..sources.files import ImageFolderSource
 
     try:
-        opened = open_file_source(source)
+        opened = open_source(source, live=False)
     except SourceError as err:
         message = str(err)
         raise SourceError(message if source in message else f"{source}: {message}") from None
@@ -728,7 +728,7 @@ def _gather_files(
     considered = 0
     with opened as frames:
         is_folder = isinstance(frames, ImageFolderSource)
-        count = frames.frame_count
+        count = frames.info.frame_count
         step = 1 if is_folder or not count else max(1, math.ceil(count / (CANDIDATES_PER_VIEW * max_views)))
         if step > 1:
             log.info("%s: %d frames, considering one in %d", source, count, step)

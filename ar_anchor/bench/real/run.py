@@ -69,10 +69,10 @@ def plain_opencv_poses(
 
     ``camera``: a :class:`CameraModel` or a calibration file, scaled to the video's frame size.
     """
-    from ...sources import open_file_source
+    from ...sources import open_source
 
     poses: PoseTable = defaultdict(dict)
-    with open_file_source(video) as source:
+    with open_source(video, live=False) as source:
         model = camera if isinstance(camera, CameraModel) else CameraModel.from_yaml(camera)
         plain = PlainOpenCV(model.scaled_to(*source.resolution), dictionary, length_m)
         for frame in source:
@@ -122,17 +122,17 @@ def run_real(
     The camera is scaled to the video's size as ``ar-anchor replay`` does; the baseline uses the
     config's dictionary and (default) marker length.
     """
-    from ...sources import open_file_source
+    from ...sources import open_source
     from ...track.tracker import Tracker
 
     run = RealRun()
     start = time.perf_counter()
-    with open_file_source(video) as source:
+    with open_source(video, live=False) as source:
         scaled = camera.scaled_to(*source.resolution)
         run.resolution = source.resolution
         tracker = Tracker(config, scaled)
         plain = PlainOpenCV(scaled, config.detector.dictionary, config.markers.length_m)
-        total = source.frame_count
+        total = source.info.frame_count
         for frame in source:
             t0 = time.perf_counter()
             result = tracker.process(frame)

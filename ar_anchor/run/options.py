@@ -1,0 +1,30 @@
+"""How a run reads, logs and records, beyond the tracker itself (:class:`RunOptions`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["RunOptions"]
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a run reads, logs and records, beyond the tracker itself.
+
+    A source that declares a video file (:attr:`SourceInfo.video_path <ar_anchor.sources.base.SourceInfo>`)
+    is referenced by the recording instead of its frames being logged as JPEG, when rerun can decode it.
+    """
+
+    max_frames: int | None = None
+    spawn: bool = False
+    connect: str | None = None  # a running rerun viewer's gRPC URL
+    recording_name: str = "ar_anchor"
+    record_raw: bool = False  # also write raw.mkv (lossless) + timestamps
+    record_fps: float = 30.0
+    video_out: Path | None = None  # write the annotated (overlay) video here
+    overlays: bool = True  # draw the config's overlays (rerun's camera/overlay and --video-out)
+    decode_queue: int = 4  # frames decoded ahead of the tracker (file and synthetic sources)
+    output_queue: int = 8  # tracked frames waiting for their overlay, video and rerun log
+    extra_summary: dict[str, Any] = field(default_factory=dict)

@@ -1,0 +1,218 @@
+"""Everything one run writes, owned by one object that opens it and closes it in a written-down order.
+
+:class:`RunOutputs` owns ``poses.csv``, the statistics for ``summary.json``, ``raw.mkv`` (``--record``),
+the annotated video (``--video-out``), the rerun recording, and the output thread that draws and
+logs each tracked frame behind the tracker (:class:`~.threads.OutputStage`).
+
+:meth:`RunOutputs.close` closes them in this order, each step taken even when one before it failed
+(the last failure is raised, with the earlier ones as its context, as nested ``finally`` blocks would):
+
+1. the output thread: it finishes the frames already queued, so that the recording and the annotated
+   video end on the same frame as ``poses.csv``; it writes into both, so it stops first;
+2. the annotated video: its encoder flushed, the container finalised (playable even if that fails);
+3. ``raw.mkv`` and its timestamps;
+4. ``poses.csv`` (flushed after every frame already);
+5. the recording: flushed (bounded, so a viewer that went away does not hang the end) and closed.
+
+:meth:`RunOutputs.write_summary` then writes ``summary.json``, whatever happened before: how the run
+ended, and how many frames reached the video and the recording, which only the closed outputs know.
+An output that fails to open leaves those opened before it to :meth:`~RunOutputs.close`; the summary
+is still written.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..camera import CameraModel
+from ..config import RecordingConfig
+from ..geometry import Pose
+from ..render.overlay import OverlayRenderer
+from ..render.video import AnnotatedVideoWriter
+from ..sources.base import Frame, SourceInfo
+from ..track.tracker import FrameResult
+from ..viz.recorder import RerunRecorder
+from .options import RunOptions
+from .outputs import PosesCsvWriter, RawVideoWriter, RunSummary, write_json_atomic
+from .threads import OutputStage
+
+__all__ = ["RunOutputs", "close_in_order"]
+
+log = logging.getLogger(__name__)
+
+
+def close_in_order(steps: Sequence[Callable[[], object]]) -> None:
+    """Call every step in turn, even after one raised; then raise the last failure, the earlier ones
+    chained as its context (what nested ``try/finally`` blocks, or an ``ExitStack``, would raise)."""
+    failure: BaseException | None = None
+    for step in steps:
+        try:
+            step()
+        except BaseException as err:  # noqa: BLE001 - raised below, once every step ran
+            if failure is not None and err is not failure:
+                err.__context__ = failure
+            failure = err
+    if failure is not None:
+        raise failure
+
+
+class RunOutputs:
+    """The outputs of one run into ``out_dir`` (see the module doc for the order they close in).
+
+    Use: :meth:`open`, :meth:`write` each tracked frame, :meth:`close`, :meth:`write_summary`.
+    """
+
+    def __init__(self, out_dir: Path, options: RunOptions) -> None:
+        self.out_dir = out_dir
+        self.poses_csv = out_dir / "poses.csv"
+        self.summary_json = out_dir / "summary.json"
+        self.recording_rrd = out_dir / "recording.rrd"
+        self.raw_video = out_dir / "raw.mkv" if options.record_raw else None
+        self.summary = RunSummary()
+        self.image_logging = "none"  # how the recording holds the images: none, jpeg or video_asset
+        self._options = options
+        self._live = False
+        self._renderer: OverlayRenderer | None = None
+        self._recorder: RerunRecorder | None = None
+        self._csv: PosesCsvWriter | None = None
+        self._raw: RawVideoWriter | None = None
+        self._video: AnnotatedVideoWriter | None = None
+        self._stage: OutputStage | None = None
+        self._stage_open = False
+        # what the closed outputs report in summary.json
+        self._video_frames = 0
+        self._recording_parts: list[str] = []
+
+    # ------------------------------------------------------------------ opening
+    def open(
+        self,
+        camera: CameraModel,
+        recording: RecordingConfig,
+        info: SourceInfo,
+        renderer: OverlayRenderer | None,
+    ) -> None:
+        """Open the recording, ``poses.csv``, ``raw.mkv``, the annotated video and the output thread, in
+        this order. ``renderer`` draws the overlays (None: none drawn); ``info``: the source's, for the
+        output thread's policy (live: never make the tracker wait) and the recording's video reference."""
+        options = self._options
+        self._live = info.live
+        self._renderer = renderer
+        self._recorder = RerunRecorder(
+            self.recording_rrd,
+            camera=camera,
+            settings=recording,
+            spawn=options.spawn,
+            connect=options.connect,
+            recording_name=options.recording_name,
+            overlay_models=renderer.models_for if renderer is not None else None,
+        )
+        self.image_logging = "jpeg"
+        if info.video_path is not None and self._recorder.use_video(info.video_path, info.frame_count):
+            self.image_logging = "video_asset"
+        self._csv = PosesCsvWriter(self.poses_csv)
+        if self.raw_video is not None:
+            self._raw = RawVideoWriter(self.raw_video, fps=options.record_fps)
+        if options.video_out is not None:
+            self._video = AnnotatedVideoWriter(options.video_out, fps=options.record_fps)
+        self._stage = OutputStage(self._draw_and_log, depth=options.output_queue)
+        self._stage_open = True
+
+    # ------------------------------------------------------------------ per frame
+    def write(
+        self, frame: Frame, result: FrameResult, truth: Mapping[str, Pose] | None, stages: dict[str, float]
+    ) -> None:
+        """One tracked frame: ``raw.mkv`` and ``poses.csv`` now (in the tracker's thread), its statistics,
+        and its overlay, annotated video frame and rerun log queued for the output thread. Live, a frame
+        the output thread has no room for is not drawn or logged (the tracker never waits for it),
+        unless ``--video-out`` asks for a video of every tracked frame."""
+        assert self._csv is not None and self._stage is not None, "open() the outputs first"
+        if self._raw is not None:
+            self._raw.write(frame.image, frame.index, frame.timestamp_ns)
+        self._csv.write(result)
+        self.summary.add(result, truth, stages)
+        self._stage.submit(frame, result, stages, block=not self._live or self._video is not None)
+
+    def _draw_and_log(self, frame: Frame, result: FrameResult, stages: dict[str, float]) -> dict[str, float]:
+        """The overlay, ``--video-out`` and the rerun log of one frame (in the output thread)."""
+        recorder = self._recorder
+        assert recorder is not None
+        t0 = time.perf_counter()
+        annotated = None
+        if self._renderer is not None and (self._video is not None or recorder.wants_image(frame)):
+            annotated = self._renderer.annotate(frame.image, result)
+        t1 = time.perf_counter()
+        if self._video is not None:
+            self._video.write(annotated)
+        recorder.log_frame(frame, result, annotated, stages=stages)
+        t2 = time.perf_counter()
+        measured = {"render_ms": (t1 - t0) * 1e3, "log_ms": (t2 - t1) * 1e3}
+        recorder.log_latency(measured)
+        return measured
+
+    # ------------------------------------------------------------------ closing
+    def close(self) -> None:
+        """Close every output that is open, in the module doc's order; idempotent."""
+        close_in_order(
+            [
+                self._stop_output_thread,
+                self._close_annotated_video,
+                self._close_raw_video,
+                self._close_poses_csv,
+                self._close_recording,
+            ]
+        )
+
+    def _stop_output_thread(self) -> None:
+        if self._stage is not None and self._stage_open:
+            self._stage_open = False  # kept: its counts go into the summary
+            self._stage.close()
+
+    def _close_annotated_video(self) -> None:
+        if self._video is not None:
+            video, self._video = self._video, None
+            self._video_frames = video.frames
+            video.close()
+
+    def _close_raw_video(self) -> None:
+        if self._raw is not None:
+            raw, self._raw = self._raw, None
+            raw.close()
+
+    def _close_poses_csv(self) -> None:
+        if self._csv is not None:
+            csv, self._csv = self._csv, None
+            csv.close()
+
+    def _close_recording(self) -> None:
+        if self._recorder is not None:
+            recorder, self._recorder = self._recorder, None
+            self._recording_parts = [part.name for part in recorder.parts]
+            recorder.close()
+
+    def write_summary(self, status: str, wall_time_s: float, extras: Mapping[str, Any]) -> dict[str, Any]:
+        """Write ``summary.json`` (after :meth:`close`) and return it: the statistics, ``status`` (how the
+        run ended), the options' ``extra_summary``, what the outputs counted, then ``extras``."""
+        options = self._options
+        counts = dict(options.extra_summary)
+        if options.video_out is not None:
+            counts["video_out"] = {"path": str(options.video_out), "frames": self._video_frames}
+        if len(self._recording_parts) > 1:
+            counts["recording_parts"] = self._recording_parts  # open together: rerun recording*.rrd
+        if self._stage is not None:
+            self.summary.add_latency(self._stage.latency_ms)
+            counts["frames_logged"] = self._stage.done
+            if self._stage.skipped:
+                counts["frames_not_logged"] = self._stage.skipped
+                log.warning(
+                    "%d frame(s) tracked but not logged or drawn: the outputs could not keep up (live mode "
+                    "never makes the tracker wait); they are in poses.csv",
+                    self._stage.skipped,
+                )
+        counts.update(extras)
+        data = self.summary.as_dict(wall_time_s, status=status, image_logging=self.image_logging, **counts)
+        write_json_atomic(self.summary_json, data)
+        return data

@@ -1,0 +1,157 @@
+"""One opener for every kind of source: :func:`open_source` reads what the spec names.
+
+========================================  ===========================================================
+spec                                      source
+========================================  ===========================================================
+a video file                              :class:`~.files.VideoFileSource` (container timestamps)
+a folder, a glob (``shots/*.png``),       :class:`~.files.ImageFolderSource` (natural order, ``fps``)
+or one image
+``/dev/videoN``, ``N`` (str or int)       :class:`~.live.LiveSource` over a :class:`~.live.WebcamGrabber`
+``"synthetic"``                           :class:`~.live.LiveSource` over a :class:`~.live.SyntheticGrabber`:
+                                          the demo scene (or ``scene``) in real time, with its truth
+========================================  ===========================================================
+
+``live`` overrides the guess: ``False`` reads any spec as a path (a file named ``synthetic``);
+``True`` reads any spec as a device (``ar-anchor live --device``), so that a name that is no device
+is reported as one.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, overload
+
+from ..camera import CameraModel
+from ..config import TrackerConfig, demo_config
+from ..synthetic import SyntheticScene, Trajectory, demo_scene
+from .base import FrameSource
+from .files import IMAGE_EXTENSIONS, ImageFolderSource, VideoFileSource
+from .live import Grabber, LiveSource, SyntheticGrabber, WebcamGrabber
+
+__all__ = ["SYNTHETIC", "DeviceSettings", "live_demo_scene", "open_source"]
+
+SYNTHETIC = "synthetic"  # the spec of the synthetic camera
+_GLOB_CHARS = re.compile(r"[*?\[]")
+_DEFAULT_FPS = 30.0  # image sequences and the synthetic camera, unless told otherwise
+
+
+@dataclass(frozen=True)
+class DeviceSettings:
+    """What to ask of a live device beyond its frame rate, and how patiently to wait for it.
+
+    ``width``, ``height``, ``fourcc``: requested (the device may grant others; it says which);
+    ``queue_size``: frames waiting for the tracker at most (1: the newest only); ``reconnect_s``: how
+    long a vanished device is reopened; ``stall_s``: how long without a frame ends the stream.
+    """
+
+    width: int | None = None
+    height: int | None = None
+    fourcc: str | None = "MJPG"
+    queue_size: int = 1
+    reconnect_s: float = 5.0
+    stall_s: float = 10.0
+
+
+def live_demo_scene(
+    config: TrackerConfig | None = None,
+    camera: CameraModel | None = None,
+    *,
+    fps: float = _DEFAULT_FPS,
+    seed: int = 0,
+) -> SyntheticScene:
+    """The synthetic camera's scene: the demo scene (``config``'s targets, default the demo config) seen
+    by ``camera`` (default the synthetic camera) on a 20 s orbit at ``fps``."""
+    return demo_scene(
+        config or demo_config(),
+        camera or CameraModel.default_synthetic(),
+        frames=max(int(20 * fps), 2),
+        seed=seed,
+        fps=fps,
+        trajectory=Trajectory(kind="orbit", near_m=0.5, look_at=(-0.01, 0.0, 0.0)),
+    )
+
+
+def _is_device(spec: str | int | os.PathLike[str]) -> bool:
+    if isinstance(spec, int):
+        return True
+    text = os.fspath(spec).strip()
+    return text.isdigit() or text.startswith("/dev/video")
+
+
+@overload
+def open_source(
+    spec: str | int | os.PathLike[str],
+    *,
+    live: Literal[True],
+    fps: float | None = None,
+    device: DeviceSettings | None = None,
+    scene: SyntheticScene | None = None,
+) -> LiveSource: ...
+
+
+@overload
+def open_source(
+    spec: str | os.PathLike[str], *, live: Literal[False], fps: float | None = None
+) -> VideoFileSource | ImageFolderSource: ...
+
+
+@overload
+def open_source(
+    spec: str | int | os.PathLike[str],
+    *,
+    live: None = None,
+    fps: float | None = None,
+    device: DeviceSettings | None = None,
+    scene: SyntheticScene | None = None,
+) -> FrameSource: ...
+
+
+def open_source(
+    spec: str | int | os.PathLike[str],
+    *,
+    live: bool | None = None,
+    fps: float | None = None,
+    device: DeviceSettings | None = None,
+    scene: SyntheticScene | None = None,
+) -> FrameSource:
+    """The source ``spec`` names (see the module doc), opened; use it as a context manager.
+
+    ``fps``: an image sequence's frame rate (default 30), the rate asked of a device (default: its own),
+    or the default synthetic scene's (default 30). ``device``: what else to ask of a device.
+    ``scene``: what the synthetic camera shows (default :func:`live_demo_scene`).
+    Raises :class:`~ar_anchor.errors.SourceError` naming the spec when it cannot be opened.
+    """
+    if live is None:
+        live = spec == SYNTHETIC or _is_device(spec)
+    if not live:
+        return _open_path(os.fspath(spec), fps=_DEFAULT_FPS if fps is None else fps)
+    settings = device or DeviceSettings()
+    grabber: Grabber
+    if spec == SYNTHETIC:
+        scene = scene or live_demo_scene(fps=_DEFAULT_FPS if fps is None else fps)
+        grabber, camera, fps = SyntheticGrabber(scene, loop=True), scene.camera, scene.fps
+    else:
+        name = spec if isinstance(spec, int) else os.fspath(spec)
+        grabber = WebcamGrabber(name, width=settings.width, height=settings.height, fps=fps, fourcc=settings.fourcc)
+        camera = None
+    return LiveSource(
+        grabber,
+        queue_size=settings.queue_size,
+        reconnect_s=settings.reconnect_s,
+        stall_s=settings.stall_s,
+        camera=camera,
+        fps=fps,
+    )
+
+
+def _open_path(text: str, *, fps: float) -> VideoFileSource | ImageFolderSource:
+    """A video file, an image folder, a glob of images, or a single image: the right source for it."""
+    path = Path(text)
+    if path.is_dir() or _GLOB_CHARS.search(text) and not path.exists():
+        return ImageFolderSource(text, fps=fps)
+    if path.is_file() and path.suffix.lower() in IMAGE_EXTENSIONS:
+        return ImageFolderSource(text, fps=fps)
+    return VideoFileSource(path)
