@@ -43,8 +43,7 @@ def run_end_to_end(
     tracker = Tracker(config, camera)
     renderer = OverlayRenderer(config, camera)
     rrd = tmp / "speed.rrd"
-    recorder = RerunRecorder(rrd, camera=camera, settings=config.recording)
-    recorder.overlay_models = renderer.models_for
+    recorder = RerunRecorder(rrd, camera=camera, settings=config.recording, overlay_models=renderer.models_for)
     times: dict[str, list[float]] = {stage: [] for stage in E2E_STAGES}
     tracker_ms: list[float] = []
     outputs: list[dict[str, Pose]] = []
