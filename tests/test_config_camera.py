@@ -13,6 +13,7 @@ import pytest
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import (
     BoardConfig,
+    ConfigValueError,
     DetectorConfig,
     PoseConfig,
     RecordingConfig,
@@ -457,5 +458,55 @@ def test_camera_matrix_as_a_plain_list_of_nine_is_read_row_major(tmp_path):
 def test_dictionary_override_checks_board_ids():
     config = parse_config({"boards": [{"name": "far", "kind": "grid", "cols": 2, "rows": 2, "first_id": 40}]}, "x.toml")
     assert config.with_overrides(dictionary="DICT_5X5_100").boards[0].dictionary == "DICT_5X5_100"
-    with pytest.raises(ConfigError, match=r"--dictionary: DICT_APRILTAG_16h5 has 30 markers, but board 'far'"):
+    # the error names the key it would set and carries the value; the CLI, which knows the flag, says "--dictionary"
+    with pytest.raises(ConfigValueError, match=r"^\[detector\] dictionary: DICT_APRILTAG_16h5 has 30 markers") as info:
         config.with_overrides(dictionary="DICT_APRILTAG_16h5")
+    assert (info.value.table, info.value.key, info.value.value) == ("[detector]", "dictionary", "DICT_APRILTAG_16h5")
+    assert info.value.problem.startswith("DICT_APRILTAG_16h5 has 30 markers, but board 'far' (x.toml) uses ids [40")
+    assert isinstance(info.value, InputError)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "table", "key", "problem"),
+    [
+        ({"dictionary": "DICT_9X9_1"}, "[detector]", "dictionary", r"unknown dictionary 'DICT_9X9_1' \(known: "),
+        ({"marker_length_m": -0.05}, "[markers]", "length_m", r"must be a positive length in metres, got -0.05"),
+        ({"marker_length_m": float("nan")}, "[markers]", "length_m", r"must be a positive length in metres, got nan"),
+    ],
+)
+def test_bad_override_names_the_key_not_a_flag(overrides, table, key, problem):
+    with pytest.raises(ConfigValueError) as info:
+        TrackerConfig().with_overrides(**overrides)
+    assert (info.value.table, info.value.key) == (table, key)
+    assert re.match(problem, info.value.problem)
+    assert str(info.value) == f"{table} {key}: {info.value.problem}"
+    assert "--" not in str(info.value)
+
+
+def test_file_errors_carry_table_key_and_value(tmp_path):
+    # given a file with a value out of range
+    path = tmp_path / "bad.toml"
+    path.write_text("[recording]\njpeg_quality = 101\n")
+    # then the error's attributes say where and what, and its message is the one line the user reads
+    with pytest.raises(ConfigValueError) as info:
+        load_config(path)
+    err = info.value
+    assert (err.table, err.key, err.value, err.problem) == (
+        "[recording]",
+        "jpeg_quality",
+        101,
+        "must be in [1, 100], got 101",
+    )
+    assert str(err) == f"{path}: [recording] jpeg_quality: must be in [1, 100], got 101"
+
+
+def test_unknown_key_gets_a_hint(tmp_path):
+    path = tmp_path / "typo.toml"
+    path.write_text("[markers]\nlenght_m = 0.05\n[[boards]]\nname = 'g'\nsquares_x = 4\n")
+    with pytest.raises(ConfigValueError, match=r"\[markers\]: unknown key\(s\): lenght_m \(did you mean length_m\?\)"):
+        load_config(path)
+    path.write_text("[[boards]]\nname = 'g'\nsquares_x = 4\n")
+    with pytest.raises(
+        ConfigValueError, match=r"'g': unknown key\(s\): squares_x \(squares_x is a charuco board's key\)"
+    ):
+        load_config(path)

@@ -1,0 +1,59 @@
+"""Tracker configuration: TOML read into validated, frozen dataclasses, each key declared once.
+
+- :mod:`.keys`: how a key is declared (a dataclass field with its default, check and doc) and the
+  error a bad one raises (:class:`ConfigValueError`: one line naming file, table and key; the key and
+  value as attributes);
+- :mod:`.model`: the tables (``[detector]``, ``[markers]``, ``[pose]``, ``[filter]``, ``[recording]``,
+  ``[[overlays]]``) and :class:`TrackerConfig`; :mod:`.board`: ``[[boards]]``;
+- :mod:`.read`: one generic reader plus the special cases (boards, overlays, per-id lengths);
+- :mod:`.document`: writes ``configs/default.toml`` and ``configs/demo.toml`` from the declarations
+  (``python -m ar_anchor.config.document configs``; a test keeps the files equal to it);
+- :mod:`.dictionaries`: OpenCV's dictionary and corner-refinement names.
+
+``TrackerConfig()`` (what runs without ``--config``) is exactly ``configs/default.toml``. In a config
+file every scalar key is optional and takes that default, but the lists are what the file says: a
+file without ``[[boards]]`` has no boards, one without ``[markers.lengths_m]`` has no per-id sizes.
+"""
+
+from __future__ import annotations
+
+from .board import BOARD_KINDS, BoardConfig
+from .dictionaries import CORNER_REFINEMENTS, dictionary_id, dictionary_names, dictionary_size
+from .keys import ConfigValueError
+from .model import (
+    DEMO_BOARD,
+    DEMO_LENGTHS_M,
+    OVERLAY_KINDS,
+    DetectorConfig,
+    FilterConfig,
+    MarkersConfig,
+    OverlayConfig,
+    PoseConfig,
+    RecordingConfig,
+    TrackerConfig,
+    demo_config,
+)
+from .read import load_config, parse_config
+
+__all__ = [
+    "BOARD_KINDS",
+    "CORNER_REFINEMENTS",
+    "DEMO_BOARD",
+    "DEMO_LENGTHS_M",
+    "OVERLAY_KINDS",
+    "BoardConfig",
+    "ConfigValueError",
+    "DetectorConfig",
+    "FilterConfig",
+    "MarkersConfig",
+    "OverlayConfig",
+    "PoseConfig",
+    "RecordingConfig",
+    "TrackerConfig",
+    "demo_config",
+    "dictionary_id",
+    "dictionary_names",
+    "dictionary_size",
+    "load_config",
+    "parse_config",
+]
