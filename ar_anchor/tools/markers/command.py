@@ -1,0 +1,131 @@
+"""``ar-anchor markers``: the options to a :class:`~.sheet.MarkerSheet`, the sheet to files.
+
+:func:`sheet_from_args` refuses options that do not belong to the kind of sheet asked for and
+names the missing ones; :func:`write_sheet` renders everything before writing anything (the sheet
+files and the ``<stem>.toml`` tracker config snippet); :func:`run_markers` prints the paths.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from ...errors import InputError, OutputError
+from ...run.outputs import prepare_out_dir
+from .draw import FORMATS, render_pdf, render_png, render_svg
+from .layout import RULER_MM
+from .sheet import MarkerSheet, parse_ids
+
+__all__ = ["run_markers", "sheet_from_args", "write_sheet"]
+
+log = logging.getLogger(__name__)
+
+
+def write_sheet(sheet: MarkerSheet, out: str | os.PathLike[str], fmt: str = "pdf", dpi: int = 300) -> list[Path]:
+    """Render and write the sheet (``<stem>.<fmt>`` or ``<stem>_p<N>.<fmt>``) and its ``<stem>.toml``;
+    returns the written paths, sheet files first. Everything is rendered before anything is written."""
+    if fmt not in FORMATS:
+        raise InputError(f"--format: must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    out = Path(out)
+    stem = sheet.stem(fmt, dpi)
+    if fmt == "pdf":
+        blobs = [render_pdf(sheet)]
+    elif fmt == "svg":
+        blobs = [doc.encode("utf-8") for doc in render_svg(sheet)]
+    else:
+        blobs = render_png(sheet, dpi)
+    names = [f"{stem}.{fmt}"] if len(blobs) == 1 else [f"{stem}_p{n}.{fmt}" for n in range(1, len(blobs) + 1)]
+    config = sheet.config_toml(names, fmt, dpi).encode("utf-8")
+    prepare_out_dir(out)
+    written = []
+    for name, blob in [*zip(names, blobs), (f"{stem}.toml", config)]:
+        path = out / name
+        try:
+            path.write_bytes(blob)
+        except OSError as err:
+            raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
+        written.append(path)
+        log.info("wrote %s (%d bytes)", path, len(blob))
+    return written
+
+
+def _given(args: argparse.Namespace, name: str) -> bool:
+    value = getattr(args, name, None)
+    return value not in (None, False)
+
+
+def sheet_from_args(args: argparse.Namespace) -> MarkerSheet:
+    """The sheet the ``markers`` options ask for; missing or misplaced options are InputErrors."""
+    board = getattr(args, "board", None)
+    paper = getattr(args, "paper", "a4")
+    dictionary = getattr(args, "dictionary", "DICT_4X4_50")
+    first_id = getattr(args, "first_id", 0) or 0
+    name = getattr(args, "name", None)
+
+    def refuse(options: Sequence[str], mode: str) -> None:
+        for option in options:
+            if _given(args, option):
+                raise InputError(f"--{option.replace('_', '-')}: not used with {mode}")
+
+    def require(options: Sequence[str], mode: str) -> None:
+        missing = [f"--{o.replace('_', '-')}" for o in options if getattr(args, o, None) is None]
+        if missing:
+            raise InputError(f"{', '.join(missing)}: required with {mode}")
+
+    if board is None:
+        if getattr(args, "ids", None) is None:
+            raise InputError("--ids: nothing to print; give --ids and --size-mm for single markers, or --board")
+        mode = "single markers (--ids)"
+        refuse(("cols", "rows", "gap_mm", "square_mm", "legacy", "name"), mode)
+        if first_id:
+            raise InputError(f"--first-id: not used with {mode}")
+        require(("size_mm",), mode)
+        return MarkerSheet.single(dictionary, parse_ids(args.ids), args.size_mm, paper=paper)
+    if board not in ("grid", "charuco"):
+        raise InputError(f"--board: must be grid or charuco, got {board!r}")
+    mode = f"--board {board}"
+    if _given(args, "ids"):
+        raise InputError(f"--ids: not used with {mode} (a board's ids run from --first-id)")
+    if board == "grid":
+        refuse(("square_mm", "legacy"), mode)
+        require(("cols", "rows", "size_mm", "gap_mm"), mode)
+        return MarkerSheet.grid(
+            dictionary,
+            args.cols,
+            args.rows,
+            args.size_mm,
+            args.gap_mm,
+            first_id=first_id,
+            name=name or "grid",
+            paper=paper,
+        )
+    refuse(("gap_mm",), mode)
+    require(("cols", "rows", "square_mm", "size_mm"), mode)
+    return MarkerSheet.charuco(
+        dictionary,
+        args.cols,
+        args.rows,
+        args.square_mm,
+        args.size_mm,
+        first_id=first_id,
+        legacy=bool(getattr(args, "legacy", False)),
+        name=name or "charuco",
+        paper=paper,
+    )
+
+
+def run_markers(args: argparse.Namespace) -> int:
+    """``ar-anchor markers``: write the sheet and its config snippet, print their paths; 0 on success."""
+    sheet = sheet_from_args(args)
+    fmt = getattr(args, "format", "pdf")
+    dpi = getattr(args, "dpi", 300)
+    out = getattr(args, "out", None) or Path("markers")
+    paths = write_sheet(sheet, out, fmt, dpi)
+    if not getattr(args, "quiet", False):
+        for path in paths:
+            print(f"wrote {path}")
+        print(f"print at 100 % / actual size (no scaling) and check the {RULER_MM:g} mm bar before use")
+    return 0
