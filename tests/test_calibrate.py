@@ -6,7 +6,7 @@ The synthetic views are rendered exactly: the board image (``CharucoBoard.genera
 px/mm) is mapped through the homography ``K [r1 r2 t]`` into the ideal pinhole image (3x
 supersampled, then area-averaged; pixel centres at integer coordinates), and the lens distortion is
 applied by resampling that pinhole canvas at each output pixel's undistorted position
-(``ar_anchor.sources.synthetic._pinhole_canvas``), so corners land where ``projectPoints`` puts them.
+(``ar_anchor.synthetic.pinhole_canvas``), so corners land where ``projectPoints`` puts them.
 """
 
 from __future__ import annotations
@@ -345,15 +345,15 @@ def test_outlier_views_are_dropped_then_recalibrated(detected):
 
 
 def test_k3_is_fixed_only_when_the_radial_model_folds_inside_the_image():
-    from ar_anchor.tools.calibrate import _radial_folds
+    from ar_anchor.tools.calibrate.solve import radial_folds
 
-    assert not _radial_folds(TRUE_K, TRUE_DIST, (WIDTH, HEIGHT))
+    assert not radial_folds(TRUE_K, TRUE_DIST, (WIDTH, HEIGHT))
     # OpenCV's calibration of its tutorial webcam: large k2, k3, still monotonic over the image
-    assert not _radial_folds(
+    assert not radial_folds(
         np.array([[452.5, 0, 317.7], [0, 456.8, 277.8], [0, 0, 1]]), np.array([0.12, -1.09, 0, 0, 2.95]), (640, 480)
     )
     # r (1 - 0.9 r^2) peaks at r = 0.61, below the corners' radius 0.82: the model folds
-    assert _radial_folds(TRUE_K, np.array([-0.9, 0.0, 0.0, 0.0, 0.0]), (WIDTH, HEIGHT))
+    assert radial_folds(TRUE_K, np.array([-0.9, 0.0, 0.0, 0.0, 0.0]), (WIDTH, HEIGHT))
 
 
 def test_coverage_warns_about_a_central_cluster():

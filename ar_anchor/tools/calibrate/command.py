@@ -1,0 +1,83 @@
+"""``ar-anchor calibrate``: check the options, calibrate, write the camera YAML and the recording,
+print the report."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+
+from ...errors import ArAnchorError, InputError, OutputError, SourceError
+from .gather import calibrate_source, is_device
+from .recording import CalibrationRecording
+from .report import format_report, write_camera_yaml
+from .views import CharucoSpec
+
+__all__ = ["run_calibrate"]
+
+log = logging.getLogger(__name__)
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    """``ar-anchor calibrate``: calibrate, write ``--out`` and the recording, print the report."""
+    spec = CharucoSpec.parse(args.charuco, args.square_m, args.marker_m, args.dictionary, args.legacy)
+    out = Path(args.out)
+    quiet = bool(getattr(args, "quiet", False))
+    if out.is_dir():
+        raise InputError(f"--out {out}: is a directory (give the camera YAML file to write)")
+    if out.suffix.lower() == ".rrd":
+        raise InputError(f"--out {out}: the camera file must be YAML, e.g. camera.yml")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"--out {out}: cannot create its folder ({err.strerror})") from None
+    if not os.access(out.parent, os.W_OK):
+        raise OutputError(f"--out {out}: folder {out.parent} is not writable")
+    rrd = Path(args.rrd) if getattr(args, "rrd", None) is not None else out.with_suffix(".rrd")
+    source = str(args.source)
+    if not is_device(source) and not any(ch in source for ch in "*?[") and not Path(source).exists():
+        raise SourceError(f"{source}: not found (expected an image folder or glob, a video file, or a device)")
+
+    def progress(message: str) -> None:
+        if not quiet:
+            print(f"ar-anchor: {message}", file=sys.stderr, flush=True)
+
+    recording = CalibrationRecording(rrd, spawn=bool(getattr(args, "spawn", False)))
+    succeeded = False
+    try:
+        try:
+            report = calibrate_source(
+                source,
+                spec,
+                max_views=args.max_views,
+                min_views=args.min_views,
+                duration_s=getattr(args, "duration_s", 60.0) or 60.0,
+                width=getattr(args, "width", None),
+                height=getattr(args, "height", None),
+                fps=getattr(args, "fps", None),
+                previews=True,
+                progress=progress,
+                on_keep=recording.live_view,
+            )
+        except ArAnchorError as err:
+            recording.event(f"calibration failed: {err}", warn=True)
+            raise
+        for rejection in report.rejections:
+            recording.event(str(rejection), frame=rejection.frame, warn=True)
+        recording.result(report)
+        write_camera_yaml(out, report)
+        succeeded = True
+    finally:
+        recording.close(keep=succeeded)
+    for warning in report.warnings:
+        log.warning("%s", warning)
+    if not quiet:
+        print(format_report(report))
+    k = report.camera.camera_matrix
+    print(
+        f"camera: {out} (fx {k[0, 0]:.1f} fy {k[1, 1]:.1f} cx {k[0, 2]:.1f} cy {k[1, 2]:.1f}, "
+        f"RMS {report.result.rms:.3f} px, {len(report.views)} views); recording: {rrd}"
+    )
+    return 0
