@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -22,6 +23,7 @@ __all__ = [
     "look_at",
     "marker_corners_in_marker",
     "matrix_from_rvec",
+    "mean_rotation",
     "pose_errors",
     "rvec_from_matrix",
     "transform_points",
@@ -78,6 +80,15 @@ def angle_between_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:
     relative = np.asarray(rotation_a).T @ np.asarray(rotation_b)
     cos_angle = np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)
     return float(np.degrees(np.arccos(cos_angle)))
+
+
+def mean_rotation(rotations: Sequence[np.ndarray]) -> np.ndarray:
+    """The chordal mean of 3x3 rotation matrices (the SVD projection of their sum onto the rotations)."""
+    u, _, vt = np.linalg.svd(np.sum(rotations, axis=0))
+    mean = u @ vt
+    if np.linalg.det(mean) < 0:
+        mean = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    return mean
 
 
 def pose_errors(estimate: Pose, truth: Pose) -> tuple[float, float]:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ar_anchor.bench.study import STUDIES, PnPSetup, configure_parser, make_correspondences, run_study, solve_trial
+from ar_anchor.tools.study import STUDIES, PnPSetup, configure_parser, make_correspondences, run_study, solve_trial
 from ar_anchor.errors import InputError
 
 RERUN = Path(sys.executable).with_name("rerun")

@@ -358,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
         "reproduce the PnP textbook's experiments: outliers, ransac, jitter",
         "Each study writes NAME.png, NAME.md, NAME.json and NAME.rrd to --out (default recordings/study/).",
     )
-    from ..bench.study import configure_parser as configure_study
+    from ..tools.study.options import configure_parser as configure_study
 
     configure_study(study)
     study.set_defaults(func=cmd_study)
@@ -736,7 +736,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_study(args: argparse.Namespace) -> int:
-    from ..bench.study import run_study
+    from ..tools.study.command import run_study
 
     return run_study(args)
 

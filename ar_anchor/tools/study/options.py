@@ -1,0 +1,245 @@
+"""The ``study`` command line: its arguments (:func:`configure_parser`), checked, turned into each
+study's setup and settings, and the command line that reproduces a run."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ...camera import CameraModel
+from ...config import load_config
+from ...errors import CameraError, InputError
+from .jitter import SETTLE_FRAMES, JitterSetup
+from .pnp import PnPSetup
+
+__all__ = [
+    "DEFAULT_OUT",
+    "FULL",
+    "QUICK",
+    "STUDIES",
+    "Defaults",
+    "camera_from_args",
+    "check",
+    "command_line",
+    "configure_parser",
+    "jitter_setup",
+    "outliers_settings",
+    "pnp_setup",
+    "ransac_settings",
+]
+
+STUDIES = ("outliers", "ransac", "jitter")
+DEFAULT_OUT = Path("recordings") / "study"
+
+
+def _float_list(text: str, option: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"{option}: expected numbers separated by commas, got {text!r}") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise InputError(f"{option}: expected numbers separated by commas, got {text!r}")
+    return values
+
+
+@dataclass(frozen=True)
+class Defaults:
+    seeds_outliers: int
+    seeds_ransac: int
+    contaminations: str
+    frames: int
+    distances: str
+
+
+FULL = Defaults(100, 50, "0,10,20,30,40,50,60,70,80,90", 300, "0.3,0.5,0.75,1,1.5,2,2.5,3")
+QUICK = Defaults(12, 6, "0,20,40,60", 60, "0.3,1,3")
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the ``study`` command's arguments to ``parser``."""
+    parser.add_argument(
+        "name",
+        choices=(*STUDIES, "all"),
+        help="outliers: solvePnP vs RANSAC + LM; ransac: threshold x contamination heatmap; "
+        "jitter: pose noise vs distance, marker and board, raw and tracked; all: the three",
+    )
+    parser.add_argument("--out", type=Path, metavar="DIR", help=f"output directory (default {DEFAULT_OUT}/)")
+    parser.add_argument("--quick", action="store_true", help="few seeds, frames and distances (a smoke run)")
+    parser.add_argument("--seed", type=int, default=0, metavar="N", help="first seed (default 0)")
+    parser.add_argument(
+        "--camera",
+        type=Path,
+        metavar="FILE",
+        help="camera YAML to use (default: 1920x1080 fx 1480 for outliers/ransac, 1280x720 fx 1000 for jitter)",
+    )
+    pnp = parser.add_argument_group("outliers and ransac")
+    pnp.add_argument("--seeds", type=int, metavar="N", help="problems per result (default 100 outliers, 50 ransac)")
+    pnp.add_argument("--points", type=int, default=120, metavar="N", help="correspondences per problem (default 120)")
+    pnp.add_argument("--pixel-noise", type=float, default=0.5, metavar="PX", help="noise sigma per coordinate (0.5)")
+    pnp.add_argument("--contamination", type=float, default=25.0, metavar="PCT", help="outliers: %% replaced (25)")
+    pnp.add_argument("--threshold", type=float, default=2.0, metavar="PX", help="RANSAC inlier threshold (2)")
+    pnp.add_argument("--iterations", type=int, default=300, metavar="N", help="RANSAC iterations (default 300)")
+    pnp.add_argument(
+        "--thresholds", default="0.5,1,2,4,8,16", metavar="PX,...", help="ransac: thresholds (0.5,1,2,4,8,16)"
+    )
+    pnp.add_argument(
+        "--contaminations", metavar="PCT,...", help=f"ransac: contaminations in %% ({FULL.contaminations})"
+    )
+    jitter = parser.add_argument_group("jitter")
+    jitter.add_argument("--frames", type=int, metavar="N", help=f"frames per distance (default {FULL.frames})")
+    jitter.add_argument("--distances", metavar="M,...", help=f"distances in metres ({FULL.distances})")
+    jitter.add_argument("--marker-m", type=float, default=0.05, metavar="M", help="marker side, metres (0.05)")
+    jitter.add_argument("--tilt-deg", type=float, default=10.0, metavar="DEG", help="view angle off the normal (10)")
+    jitter.add_argument("--sensor-noise", type=float, default=2.0, metavar="GREY", help="noise sigma, grey levels (2)")
+    jitter.add_argument("--blur", type=float, default=0.6, metavar="PX", help="optical blur sigma, px (0.6)")
+    jitter.add_argument("--config", type=Path, metavar="FILE", help="tracker TOML (default: configs/default.toml)")
+    jitter.add_argument(
+        "--roi",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="ROI tracking on or off (default: as the tracker config says; on in the default config)",
+    )
+
+
+def check(condition: bool, message: str) -> None:
+    if not condition:
+        raise InputError(message)
+
+
+def pnp_setup(args: argparse.Namespace, camera: CameraModel | None) -> PnPSetup:
+    check(args.points >= 6, f"--points: must be >= 6, got {args.points}")
+    check(
+        math.isfinite(args.pixel_noise) and args.pixel_noise >= 0,
+        f"--pixel-noise: must be >= 0, got {args.pixel_noise}",
+    )
+    check(args.iterations >= 1, f"--iterations: must be >= 1, got {args.iterations}")
+    check(math.isfinite(args.threshold) and args.threshold > 0, f"--threshold: must be > 0 px, got {args.threshold}")
+    setup = PnPSetup(points=args.points, noise_px=args.pixel_noise, iterations=args.iterations)
+    return setup if camera is None else dataclasses.replace(setup, camera=camera)
+
+
+def camera_from_args(args: argparse.Namespace) -> CameraModel | None:
+    """The ``--camera`` file's model, or None (each study's own default camera)."""
+    try:
+        return None if args.camera is None else CameraModel.from_yaml(args.camera)
+    except CameraError as err:
+        raise CameraError(f"--camera: {err}") from None
+
+
+def outliers_settings(args: argparse.Namespace, defaults: Defaults, setup: PnPSetup) -> dict[str, Any]:
+    """:func:`~.pnp.run_outliers`'s keyword arguments from the options, checked."""
+    contamination = _contamination(args.contamination, "--contamination", setup.points)
+    return {
+        "seeds": _seeds(args, defaults.seeds_outliers),
+        "contamination": contamination,
+        "threshold_px": args.threshold,
+        "first_seed": args.seed,
+    }
+
+
+def ransac_settings(args: argparse.Namespace, defaults: Defaults, setup: PnPSetup) -> dict[str, Any]:
+    """:func:`~.pnp.run_ransac`'s keyword arguments from the options, checked (the ``--threshold`` is
+    always among the thresholds)."""
+    thresholds = sorted(set(_float_list(args.thresholds, "--thresholds")) | {args.threshold})
+    check(all(t > 0 for t in thresholds), f"--thresholds: must all be > 0 px, got {args.thresholds}")
+    text = defaults.contaminations if args.contaminations is None else args.contaminations
+    contaminations = [
+        _contamination(c, "--contaminations", setup.points) for c in sorted(set(_float_list(text, "--contaminations")))
+    ]
+    return {
+        "seeds": _seeds(args, defaults.seeds_ransac),
+        "contaminations": contaminations,
+        "thresholds_px": thresholds,
+        "default_threshold_px": args.threshold,
+        "first_seed": args.seed,
+    }
+
+
+def _contamination(percent: float, option: str, points: int) -> float:
+    check(0.0 <= percent < 100.0, f"{option}: percentages must be in [0, 100), got {percent:g}")
+    honest = points - int(round(percent / 100.0 * points))
+    check(honest >= 6, f"{option}: {percent:g} % of {points} points leaves {honest} honest points; 6 are needed")
+    return percent / 100.0
+
+
+def _seeds(args: argparse.Namespace, default: int) -> int:
+    seeds = default if args.seeds is None else args.seeds
+    check(seeds >= 1, f"--seeds: must be >= 1, got {seeds}")
+    return seeds
+
+
+def jitter_setup(args: argparse.Namespace, defaults: Defaults, camera: CameraModel | None) -> JitterSetup:
+    frames = defaults.frames if args.frames is None else args.frames
+    check(
+        frames > SETTLE_FRAMES + 1,
+        f"--frames: must be > {SETTLE_FRAMES + 1} (the first {SETTLE_FRAMES} are the filter's settling time), "
+        f"got {frames}",
+    )
+    distances = sorted(
+        set(_float_list(defaults.distances if args.distances is None else args.distances, "--distances"))
+    )
+    check(all(d > 0 for d in distances), f"--distances: must all be > 0 m, got {args.distances}")
+    check(math.isfinite(args.marker_m) and args.marker_m > 0, f"--marker-m: must be > 0, got {args.marker_m}")
+    check(0.0 <= args.tilt_deg < 80.0, f"--tilt-deg: must be in [0, 80), got {args.tilt_deg}")
+    check(
+        math.isfinite(args.sensor_noise) and args.sensor_noise >= 0,
+        f"--sensor-noise: must be >= 0, got {args.sensor_noise}",
+    )
+    check(math.isfinite(args.blur) and args.blur >= 0, f"--blur: must be >= 0, got {args.blur}")
+    setup = JitterSetup(
+        config=load_config(args.config),
+        marker_m=args.marker_m,
+        distances_m=tuple(distances),
+        frames=frames,
+        tilt_deg=args.tilt_deg,
+        sensor_noise=args.sensor_noise,
+        blur_px=args.blur,
+        seed=args.seed,
+        roi=args.roi,
+    )
+    return setup if camera is None else dataclasses.replace(setup, camera=camera)
+
+
+_OPTIONS = (
+    "quick",
+    "seed",
+    "camera",
+    "seeds",
+    "points",
+    "pixel_noise",
+    "contamination",
+    "threshold",
+    "iterations",
+    "thresholds",
+    "contaminations",
+    "frames",
+    "distances",
+    "marker_m",
+    "tilt_deg",
+    "sensor_noise",
+    "blur",
+    "roi",
+    "config",
+)
+
+
+def command_line(args: argparse.Namespace, name: str, out: Path) -> str:
+    """The command line that reproduces this run (options that differ from their defaults)."""
+    defaults = argparse.ArgumentParser()
+    configure_parser(defaults)
+    reference = defaults.parse_args([name])
+    words = ["ar-anchor", "study", name]
+    for option in _OPTIONS:
+        value = getattr(args, option, None)
+        if value == getattr(reference, option):
+            continue
+        flag = "--" + option.replace("_", "-")
+        if value is False:
+            words += ["--no-" + option.replace("_", "-")]
+        else:
+            words += [flag] if value is True else [flag, str(value)]
+    return " ".join(words + ["--out", str(out)])
