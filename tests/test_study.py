@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ar_anchor.tools.study import STUDIES, PnPSetup, configure_parser, make_correspondences, run_study, solve_trial
 from ar_anchor.errors import InputError
+from ar_anchor.tools.study import STUDIES, PnPSetup, configure_parser, make_correspondences, run_study, solve_trial
 
 RERUN = Path(sys.executable).with_name("rerun")
 

@@ -1,1 +1,5 @@
-"""What a user needs around the tracker: printable marker sheets and camera calibration."""
+"""What a user needs around the tracker, one package per command: printable marker sheets
+(``markers/``), camera calibration (``calibrate/``) and the PnP textbook's experiments (``study/``).
+
+Each package keeps its model, its report and its command apart: a ``command`` module turns the
+command line into calls of the model modules and writes what the report modules produce."""

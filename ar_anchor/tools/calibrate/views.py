@@ -259,6 +259,7 @@ class ViewDetector:
 
 
 def jpeg_preview(image: np.ndarray) -> tuple[bytes, float]:
+    """A JPEG of ``image`` for the recording, its longer side at most ``PREVIEW_MAX_SIDE``: (bytes, scale)."""
     scale = min(1.0, PREVIEW_MAX_SIDE / max(image.shape[:2]))
     if scale < 1.0:
         size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))

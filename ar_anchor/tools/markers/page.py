@@ -81,6 +81,8 @@ class Text:
 
 @dataclass
 class Page:
+    """One page, ``width`` x ``height`` mm (landscape when wider than high), and what is printed on it."""
+
     width: float
     height: float
     items: list[MarkerItem | Fill | Text] = field(default_factory=list)
@@ -137,6 +139,7 @@ def marker_rects(bits: Sequence[Sequence[bool]], x: float, y: float, side: float
 
 
 def mm_text(value: float) -> str:
+    """A length in mm as written in names, captions and messages: ``50``, ``22.5``."""
     return f"{value:g}"
 
 

@@ -76,6 +76,7 @@ def format_ids(ids: Iterable[int], sep: str = ",") -> str:
 
 
 def canonical_dictionary(name: str, option: str = "--dictionary") -> str:
+    """The dictionary's canonical name (``DICT_4X4_50``) for any spelling the config accepts."""
     try:
         wanted = dictionary_id(name)
     except ConfigError as err:

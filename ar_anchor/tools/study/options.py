@@ -48,6 +48,8 @@ def _float_list(text: str, option: str) -> list[float]:
 
 @dataclass(frozen=True)
 class Defaults:
+    """The defaults of ``--seeds``, ``--contaminations``, ``--frames`` and ``--distances`` (full run or ``--quick``)."""
+
     seeds_outliers: int
     seeds_ransac: int
     contaminations: str
@@ -106,11 +108,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def check(condition: bool, message: str) -> None:
+    """An :class:`InputError` with ``message`` unless ``condition`` holds."""
     if not condition:
         raise InputError(message)
 
 
 def pnp_setup(args: argparse.Namespace, camera: CameraModel | None) -> PnPSetup:
+    """The outliers/ransac problem from the options, checked."""
     check(args.points >= 6, f"--points: must be >= 6, got {args.points}")
     check(
         math.isfinite(args.pixel_noise) and args.pixel_noise >= 0,
@@ -173,6 +177,7 @@ def _seeds(args: argparse.Namespace, default: int) -> int:
 
 
 def jitter_setup(args: argparse.Namespace, defaults: Defaults, camera: CameraModel | None) -> JitterSetup:
+    """The jitter scene and tracker config from the options, checked."""
     frames = defaults.frames if args.frames is None else args.frames
     check(
         frames > SETTLE_FRAMES + 1,

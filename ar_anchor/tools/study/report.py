@@ -13,6 +13,7 @@ __all__ = ["headline", "jitter_markdown", "metres", "outliers_markdown", "ransac
 
 
 def metres(value: float | None) -> str:
+    """A length in the unit that suits it (m, cm, mm); ``failed`` for None."""
     if value is None:
         return "failed"
     if value >= 1.0:
@@ -31,6 +32,7 @@ def _num(value: Any, digits: int = 2) -> str:
 
 
 def outliers_markdown(result: dict[str, Any]) -> str:
+    """``outliers.md``: setup, the error table and what it shows."""
     s, summary = result["settings"], result["summary"]
     plain, ransac = summary["plain_error_m"], summary["ransac_error_m"]
     inliers, honest_inliers = summary["inliers"], summary["honest_inliers"]
@@ -97,6 +99,7 @@ def outliers_markdown(result: dict[str, Any]) -> str:
 
 
 def ransac_markdown(result: dict[str, Any]) -> str:
+    """``ransac.md``: error, recall and success tables over threshold x contamination, and what they show."""
     s = result["settings"]
     thresholds, contaminations = s["thresholds_px"], s["contaminations_pct"]
     cells = {(c["threshold_px"], c["contamination_pct"]): c for c in result["cells"]}
@@ -195,6 +198,7 @@ def _ransac_findings(result: dict[str, Any], cells: dict[tuple[float, float], di
 
 
 def jitter_markdown(result: dict[str, Any]) -> str:
+    """``jitter.md``: spread per distance, target and pipeline, and what it shows."""
     s, summary, rows = result["settings"], result["summary"], result["distances"]
     lines = [
         "# Jitter versus distance: a lone marker and a 2x2 board, raw and tracked",
@@ -293,6 +297,7 @@ def _vector(values: Sequence[float]) -> str:
 
 
 def seconds_text(value: float) -> str:
+    """A duration for the terminal and the Markdown: ``12 s``, ``1.5 s``."""
     return f"{value:.0f} s" if value >= 10 else f"{value:.1f} s"
 
 
@@ -305,6 +310,7 @@ def _produced(result: dict[str, Any]) -> str:
 
 
 def headline(result: dict[str, Any]) -> str:
+    """One line of a study's result for the terminal."""
     summary = result["summary"]
     if result["study"] == "outliers":
         return (

@@ -40,5 +40,6 @@ def _percentile(array: np.ndarray, q: float) -> float | None:
 
 
 def finite(value: float) -> float | None:
+    """``value`` as a float, or None when it is NaN or infinite."""
     value = float(value)
     return value if math.isfinite(value) else None
