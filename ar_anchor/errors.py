@@ -6,7 +6,22 @@ any other :class:`ArAnchorError` to exit code 1, printing only the message.
 
 from __future__ import annotations
 
-__all__ = ["ArAnchorError", "CameraError", "ConfigError", "InputError", "OutputError", "SourceError"]
+__all__ = [
+    "EXIT_FAILURE",
+    "EXIT_INTERRUPTED",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "ArAnchorError",
+    "CameraError",
+    "ConfigError",
+    "InputError",
+    "OutputError",
+    "SourceError",
+]
+
+# exit codes of the command line: success; a run-time failure (outputs written so far stay valid);
+# bad input or usage; interrupted (Ctrl-C, SIGTERM)
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
 class ArAnchorError(Exception):

@@ -1,0 +1,112 @@
+"""`ar-anchor bench NAME`: the benchmarks, each writing NAME.md and NAME.json."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..errors import EXIT_OK
+from .options import add_command, load_tracker_config, non_negative_float, positive_float
+
+
+def add_parser(commands: Any) -> None:
+    """The ``bench`` command's options."""
+    bench = add_command(
+        commands,
+        "bench",
+        "benchmarks on synthetic ground truth (and real video without it: real)",
+        "stability: raw per-frame IPPE vs. the tracker over a grid of synthetic scenarios "
+        "(flips, errors, jitter, lag, time to commit), written as markdown and JSON.",
+    )
+    bench.add_argument(
+        "name",
+        choices=("stability", "boards", "overlay", "speed", "run", "real"),
+        help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
+        "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop; "
+        "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p; "
+        "real: relative-pose consistency of markers on one rigid sheet in a real video (tracker, its raw "
+        "per-frame pick, plain OpenCV), default chessboard.avi from $AR_ANCHOR_REALDATA",
+    )
+    bench.add_argument("--video", type=Path, default=None, help="real: the video (default: chessboard.avi)")
+    bench.add_argument(
+        "--camera", type=Path, default=None, help="real: its calibration (default: camera.yml or intrinsics.yml by it)"
+    )
+    bench.add_argument("--dictionary", default=None, help="real: override [detector] dictionary")
+    bench.add_argument(
+        "--marker-length", type=positive_float, default=None, help="real: override [markers] length_m (metres)"
+    )
+    bench.add_argument(
+        "--layout", type=Path, default=None, help="real: printed marker map (ArUco YAML or TOML): also score vs. it"
+    )
+    bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
+    bench.add_argument(
+        "--minutes",
+        type=non_negative_float,
+        default=None,
+        help="run: length of the live run whose memory is watched (default 10; 0: skip; --quick: 0)",
+    )
+    bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
+    bench.add_argument(
+        "--out", type=Path, default=Path("bench") / "results", help="output directory (default bench/results)"
+    )
+    bench.set_defaults(func=cmd_bench)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from ..bench.boards import write_board_report
+    from ..bench.overlay import write_overlay_report
+    from ..bench.stability import write_stability_report
+    from ..config import load_config
+    from ..run.outputs import prepare_out_dir
+
+    config = load_config(args.config)
+    real = None
+    if args.name == "real":  # its data files are checked (exit 2) before anything is written
+        from ..bench.real import real_inputs
+
+        real = real_inputs(args.video, args.camera, args.dictionary, args.marker_length, args.layout)
+    prepare_out_dir(args.out)  # before minutes of work, not after
+    command = f"ar-anchor bench {args.name}" + (" --quick" if args.quick else "")
+
+    def progress(i: int, total: int, name: str) -> None:
+        if not args.quiet:
+            print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
+
+    if real is not None:
+        from ..bench.real import real_summary, write_real_report
+
+        for option in ("video", "camera", "dictionary", "marker_length", "layout", "config"):
+            if getattr(args, option) is not None:
+                command += f" --{option.replace('_', '-')} {getattr(args, option)}"
+        config = load_tracker_config(  # as ar-anchor replay builds it
+            argparse.Namespace(config=args.config, dictionary=real.dictionary, marker_length=real.marker_length_m)
+        )
+
+        video_name = real.video.name
+
+        def frames(done: int, total: int | None) -> None:
+            if done % 50 == 0 or done == total:
+                progress(done - 1, total or done, f"frames of {video_name}")
+
+        print(real_summary(write_real_report(args.out, real, config, command=command, progress=frames)))
+    elif args.name == "run":
+        from ..bench.run import write_run_report
+
+        if args.minutes is not None:
+            command += f" --minutes {args.minutes:g}"
+        write_run_report(args.out, quick=args.quick, minutes=args.minutes, progress=progress, command=command)
+    elif args.name == "speed":
+        from ..bench.speed import write_speed_report
+
+        write_speed_report(args.out, quick=args.quick, progress=progress, command=command)
+    elif args.name == "overlay":
+        write_overlay_report(args.out, frames=30 if args.quick else 60, progress=progress, command=command)
+    elif args.name == "boards":
+        frames = 60 if args.quick else 150
+        write_board_report(args.out, config=config, frames=frames, progress=progress, command=command)
+    else:
+        write_stability_report(args.out, quick=args.quick, config=config, progress=progress, command=command)
+    print(f"results: {args.out / (args.name + '.md')} and {args.out / (args.name + '.json')}")
+    return EXIT_OK

@@ -1,0 +1,172 @@
+"""`ar-anchor live`: track a V4L2 camera (or the synthetic camera) in real time."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from .options import (
+    add_command,
+    add_run_options,
+    add_tracker_options,
+    camera_for_source,
+    default_out,
+    int_at_least,
+    load_tracker_config,
+    non_negative_float,
+    positive_float,
+    viewer_url,
+)
+from .report import LiveStatus, finish
+
+
+def add_parser(commands: Any) -> None:
+    """The ``live`` command's options."""
+    live = add_command(
+        commands,
+        "live",
+        "track a V4L2 webcam (or --device synthetic) live; view it in rerun",
+        "Track a live camera. The live view is the rerun viewer (--spawn, or --connect to a running "
+        "one); outputs are written as the run goes and finalised on Ctrl-C.",
+    )
+    live.add_argument(
+        "--device",
+        default="/dev/video0",
+        help="V4L2 device path or index, or 'synthetic' for the demo scene in real time (default /dev/video0)",
+    )
+    live.add_argument("--camera", type=Path, default=None, help="camera YAML (required for a real camera)")
+    add_tracker_options(live)
+    live.add_argument("--width", type=int_at_least(1), default=None, help="requested frame width")
+    live.add_argument("--height", type=int_at_least(1), default=None, help="requested frame height")
+    live.add_argument("--fps", type=positive_float, default=None, help="requested frame rate (synthetic: 30)")
+    live.add_argument("--fourcc", default="MJPG", help="requested pixel format (default MJPG, when offered)")
+    live.add_argument(
+        "--queue",
+        type=int_at_least(1),
+        default=1,
+        help="frames waiting for the tracker at most; older ones are dropped (default 1: newest only)",
+    )
+    live.add_argument(
+        "--reconnect-s",
+        type=non_negative_float,
+        default=5.0,
+        help="keep trying to reopen a vanished device this long (default 5 s)",
+    )
+    live.add_argument(
+        "--stall-s",
+        type=positive_float,
+        default=10.0,
+        help="end the run when no frame arrives for this long (default 10 s)",
+    )
+    live.add_argument("--seed", type=int_at_least(0), default=0, help="synthetic device: scene seed")
+    live.add_argument(
+        "--record",
+        action="store_true",
+        help="also save the processed frames losslessly (raw.mkv + timestamps) for frame-exact replay",
+    )
+    add_run_options(live, "live", spawn=False)
+    viewer = live.add_mutually_exclusive_group()
+    viewer.add_argument("--spawn", action="store_true", help="start a rerun viewer and stream to it")
+    viewer.add_argument(
+        "--connect",
+        metavar="URL",
+        type=viewer_url,
+        default=None,
+        help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
+    )
+    live.set_defaults(func=cmd_live)
+
+
+def _synthetic_camera_scene(args: argparse.Namespace, config: Any) -> Any:
+    """What ``live --device synthetic`` shows: the demo scene through ``--camera`` (default the synthetic
+    camera) at ``--width``/``--height``, at ``--fps`` (default 30)."""
+    from ..camera import CameraModel
+    from ..errors import CameraError, SourceError
+    from ..sources.live import CLIP_FRAMES
+    from ..sources.open import live_demo_scene
+
+    camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
+    if args.width or args.height:
+        size = (args.width or camera.width, args.height or camera.height)
+        try:
+            camera = camera.scaled_to(*size, warn=False)  # the size asked for: no warning
+        except CameraError as err:
+            raise CameraError(f"--width/--height: {err}") from None
+    try:
+        scene = live_demo_scene(config, camera, fps=args.fps or 30.0, seed=args.seed)
+    except SourceError as err:
+        raise SourceError(f"--camera {args.camera}: {err}") from None
+    if not args.quiet:
+        count = min(CLIP_FRAMES, scene.frames)
+        print(f"live: rendering the synthetic camera's {count} frames ...", file=sys.stderr, flush=True)
+    return scene
+
+
+def _print_live_counts(stats: dict[str, Any]) -> None:
+    print(
+        f"live: {stats['captured']} frames captured, {stats['delivered']} tracked, {stats['dropped_queue']} "
+        f"dropped (tracker busy), {stats['dropped_non_monotonic']} dropped (timestamps)"
+        + (f"; ended: {stats['ended_because']}" if stats["ended_because"] else "")
+    )
+
+
+def cmd_live(args: argparse.Namespace) -> int:
+    from ..camera import CameraModel
+    from ..errors import CameraError
+    from ..run.loop import run_session
+    from ..run.options import RunOptions
+    from ..sources.open import SYNTHETIC, DeviceSettings, open_source
+    from ..track.tracker import Tracker
+
+    config = load_tracker_config(args, demo=args.device == SYNTHETIC)
+    scene = _synthetic_camera_scene(args, config) if args.device == SYNTHETIC else None
+    device = DeviceSettings(
+        width=args.width,
+        height=args.height,
+        fourcc=args.fourcc,
+        queue_size=args.queue,
+        reconnect_s=args.reconnect_s,
+        stall_s=args.stall_s,
+    )
+    source = open_source(args.device, live=True, fps=args.fps, device=device, scene=scene)
+    try:
+        if args.camera is None and source.camera is None:
+            raise CameraError("--camera FILE is required for a real camera (its calibration: see the README)")
+        camera_file = CameraModel.from_yaml(args.camera) if args.camera else source.camera
+        camera = camera_for_source(camera_file, source.resolution, f"--camera {args.camera}")
+        out_dir = args.out or default_out("live")
+        options = RunOptions(
+            max_frames=args.max_frames,
+            spawn=args.spawn,
+            connect=args.connect,
+            recording_name=f"ar_anchor live {args.device}",
+            record_raw=args.record,
+            record_fps=source.info.fps or 30.0,
+            video_out=args.video_out,
+            overlays=not args.no_overlay,
+            extra_summary={"command": "live", "device": str(args.device), "granted": dict(source.grabber.granted)},
+            output_queue=3,  # live: a late logger skips frames rather than holding many (6 MB each at 1080p)
+        )
+        if args.record:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+            camera.to_yaml(Path(out_dir) / "camera.yml")  # so `ar-anchor replay OUT/raw.mkv` finds it
+        status = LiveStatus(not args.quiet, source.stats)
+        try:
+            with source:
+                outputs = run_session(
+                    source,
+                    Tracker(config, camera),
+                    out_dir,
+                    options,
+                    progress=status,
+                    summary_extras=lambda: {"live": source.stats.as_dict()},
+                )
+        finally:
+            status.close()
+    finally:
+        source.close()
+    if not args.quiet:
+        _print_live_counts(source.stats.as_dict())
+    return finish(args, outputs)

@@ -1,0 +1,170 @@
+"""What the commands share: argument types, option groups, the tracker config with its command-line
+overrides, and the camera scaled to the source."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+
+def int_at_least(minimum: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+def float_above(minimum: float, *, inclusive: bool):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (math.isfinite(value) and (value >= minimum if inclusive else value > minimum)):
+            raise argparse.ArgumentTypeError(f"must be a number {'>=' if inclusive else '>'} {minimum:g}, got {text!r}")
+        return value
+
+    return parse
+
+
+positive_float = float_above(0.0, inclusive=False)
+non_negative_float = float_above(0.0, inclusive=True)
+
+
+def float_in(low: float, high: float):
+    """A number in [low, high]."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (math.isfinite(value) and low <= value <= high):
+            raise argparse.ArgumentTypeError(f"must be a number in [{low:g}, {high:g}], got {text!r}")
+        return value
+
+    return parse
+
+
+def viewer_url(text: str) -> str:
+    """A rerun viewer's gRPC address: rerun+http(s)://host:port/proxy (or rerun://, rerun+https://)."""
+    from urllib.parse import urlparse
+
+    parsed = urlparse(text)
+    if parsed.scheme not in ("rerun", "rerun+http", "rerun+https") or not parsed.hostname:
+        raise argparse.ArgumentTypeError(
+            f"expected a rerun viewer URL such as rerun+http://127.0.0.1:9876/proxy, got {text!r}"
+        )
+    try:
+        parsed.port  # noqa: B018 - raises ValueError on a malformed port
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad port in {text!r}") from None
+    return text
+
+
+def add_common_options(parser: argparse.ArgumentParser, *, defaults: bool) -> None:
+    """-v / -q, accepted before and after the command name (the command's copy sets no default,
+    so ``ar-anchor -q demo`` is not undone by the subparser)."""
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0 if defaults else argparse.SUPPRESS,
+        help="more log output (-vv for debug)",
+    )
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=False if defaults else argparse.SUPPRESS,
+        help="no progress bar or summary table",
+    )
+
+
+def add_command(commands: Any, name: str, help_text: str, description: str) -> argparse.ArgumentParser:
+    parser = commands.add_parser(name, help=help_text, description=description, allow_abbrev=False)
+    add_common_options(parser, defaults=False)
+    return parser
+
+
+def add_run_options(parser: argparse.ArgumentParser, name: str, *, spawn: bool = True) -> None:
+    """--max-frames, --out and (optionally) --spawn, shared by the commands that run the tracker."""
+    parser.add_argument("--max-frames", type=int_at_least(1), default=None, help="stop after N frames")
+    parser.add_argument("--out", type=Path, default=None, help=f"output directory (default recordings/{name}-<time>/)")
+    parser.add_argument(
+        "--video-out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="also write the annotated video (overlays drawn) to FILE: .mp4/.mov/.mkv (H.264) or .avi (MJPG)",
+    )
+    parser.add_argument(
+        "--no-overlay",
+        action="store_true",
+        help="do not draw overlays into the recording (faster); --video-out still does",
+    )
+    if spawn:
+        parser.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
+
+
+def add_tracker_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="tracker TOML (default: configs/default.toml values: lone markers, no boards; "
+        "demo and live --device synthetic: configs/demo.toml)",
+    )
+    parser.add_argument("--dictionary", default=None, help="override [detector] dictionary, e.g. DICT_ARUCO_ORIGINAL")
+    parser.add_argument(
+        "--marker-length", type=positive_float, default=None, help="override [markers] length_m: marker side in metres"
+    )
+    parser.add_argument(
+        "--no-filter",
+        action="store_true",
+        help="the raw per-frame pipeline: lower-error IPPE solution, no flip resolution or smoothing",
+    )
+
+
+def default_out(name: str) -> Path:
+    return Path("recordings") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def load_tracker_config(args: argparse.Namespace, *, demo: bool = False):  # noqa: ANN202
+    """``--config`` (or the built-in defaults; ``demo``: the demo scene's) with the command-line overrides."""
+    from ..config import ConfigValueError, load_config
+    from ..errors import ConfigError
+
+    config = load_config(args.config, demo=demo)
+    try:
+        return config.with_overrides(
+            dictionary=getattr(args, "dictionary", None),
+            marker_length_m=getattr(args, "marker_length", None),
+            filter_enabled=False if getattr(args, "no_filter", False) else None,
+        )
+    except ConfigValueError as err:  # the library names the key; the user typed a flag
+        flag = _OVERRIDE_FLAGS.get(err.key)
+        if flag is None:
+            raise
+        raise ConfigError(f"{flag}: {err.problem}") from None
+
+
+_OVERRIDE_FLAGS = {"dictionary": "--dictionary", "length_m": "--marker-length"}
+
+
+def camera_for_source(camera: Any, resolution: tuple[int, int], option: str) -> Any:
+    from ..errors import CameraError
+
+    try:
+        return camera.scaled_to(*resolution)
+    except CameraError as err:
+        raise CameraError(f"{option}: {err}") from None

@@ -1,0 +1,105 @@
+"""`ar-anchor replay`: track a video file, an image folder or a glob of images."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..errors import EXIT_FAILURE
+from .options import (
+    add_command,
+    add_run_options,
+    add_tracker_options,
+    camera_for_source,
+    default_out,
+    load_tracker_config,
+    positive_float,
+)
+from .report import Progress, finish
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(commands: Any) -> None:
+    """The ``replay`` command's options."""
+    replay = add_command(
+        commands,
+        "replay",
+        "track a video file, an image folder or a glob of images",
+        "Track every frame of a video file (container timestamps), an image folder or a glob "
+        "(natural order, --fps timestamps) and write poses.csv, summary.json and recording.rrd.",
+    )
+    replay.add_argument(
+        "source", metavar="SOURCE", help="video file, image folder, or a quoted glob such as 'shots/*.png'"
+    )
+    replay.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        help="camera YAML (default: camera.yml beside SOURCE, as `live --record` writes it)",
+    )
+    add_tracker_options(replay)
+    replay.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of image folders (default 30)")
+    add_run_options(replay, "replay")
+    replay.set_defaults(func=cmd_replay)
+
+
+def _replay_camera(args: argparse.Namespace) -> Path:
+    """``--camera``, or the ``camera.yml`` beside the source (as ``live --record`` leaves it)."""
+    from ..errors import CameraError
+
+    if args.camera is not None:
+        return args.camera
+    beside = Path(args.source).parent / "camera.yml"
+    if not beside.is_file():
+        raise CameraError(
+            f"--camera FILE is required: the calibration of the camera that took {args.source} (none found at {beside})"
+        )
+    log.warning("using %s, found beside the source", beside)
+    return beside
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from ..camera import CameraModel
+    from ..run.loop import run_session
+    from ..run.options import RunOptions
+    from ..sources import open_source
+    from ..track.tracker import Tracker
+
+    config = load_tracker_config(args)
+    with open_source(args.source, live=False, fps=args.fps) as source:
+        camera_path = _replay_camera(args)
+        camera = camera_for_source(CameraModel.from_yaml(camera_path), source.resolution, f"--camera {camera_path}")
+        options = RunOptions(
+            max_frames=args.max_frames,
+            spawn=args.spawn,
+            recording_name=f"ar_anchor replay {args.source}",
+            video_out=args.video_out,
+            overlays=not args.no_overlay,
+            record_fps=source.info.fps or 30.0,
+            extra_summary={"command": "replay", "source": str(args.source)},
+        )
+        progress = Progress(not args.quiet, "replay")
+        try:
+            outputs = run_session(
+                source,
+                Tracker(config, camera),
+                args.out or default_out("replay"),
+                options,
+                progress=progress,
+                summary_extras=lambda: {"source_ended_early": source.info.ended_early},
+            )
+        finally:
+            progress.close()
+    code = finish(args, outputs)
+    if source.info.ended_early:
+        print(
+            f"ar-anchor: error: {args.source}: the stream ended early (damaged or truncated file); outputs cover "
+            f"the {outputs.summary['frames']} frames read before that",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+    return code

@@ -1,0 +1,94 @@
+"""The tools around the tracker: `ar-anchor markers`, `ar-anchor calibrate`, `ar-anchor study`."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from .options import add_command, int_at_least, positive_float
+
+
+def add_parsers(commands: Any) -> None:
+    """The ``markers``, ``calibrate`` and ``study`` commands' options."""
+    markers = add_command(
+        commands,
+        "markers",
+        "printable marker sheets (PDF, SVG, PNG) at exact size, with the matching tracker config",
+        "Single markers (--ids), grid boards (--board grid) or ChArUco boards (--board charuco) as PDF "
+        "(exact physical size, scale ruler, cut marks, caption), SVG or PNG at --dpi; a TOML snippet "
+        "beside each sheet configures the tracker for exactly what was printed.",
+    )
+    markers.add_argument("--dictionary", default="DICT_4X4_50", help="cv2.aruco dictionary (default DICT_4X4_50)")
+    markers.add_argument("--ids", default=None, help="single markers: ids, e.g. 0-3 or 0,5,7 or 0-3,9")
+    markers.add_argument("--size-mm", type=positive_float, default=None, help="marker side in mm (the black square)")
+    markers.add_argument("--board", choices=("grid", "charuco"), default=None, help="print a board instead")
+    markers.add_argument("--cols", type=int_at_least(1), default=None, help="board: markers (grid) or squares across")
+    markers.add_argument("--rows", type=int_at_least(1), default=None, help="board: markers (grid) or squares down")
+    markers.add_argument("--gap-mm", type=positive_float, default=None, help="grid: gap between markers in mm")
+    markers.add_argument("--square-mm", type=positive_float, default=None, help="charuco: chessboard square in mm")
+    markers.add_argument("--first-id", type=int_at_least(0), default=0, help="board: id of its first marker")
+    markers.add_argument("--legacy", action="store_true", help="charuco: the legacy (pre-4.6) pattern")
+    markers.add_argument("--name", default=None, help="board name in the config snippet (default: grid/charuco)")
+    markers.add_argument("--format", choices=("pdf", "svg", "png"), default="pdf", help="output format (default pdf)")
+    markers.add_argument("--dpi", type=int_at_least(50), default=300, help="png: dots per inch (default 300)")
+    markers.add_argument("--paper", choices=("a4", "letter"), default="a4", help="pdf/svg page size (default a4)")
+    markers.add_argument("--out", type=Path, default=Path("markers"), help="output directory (default markers/)")
+    markers.set_defaults(func=cmd_markers)
+
+    calibrate = add_command(
+        commands,
+        "calibrate",
+        "calibrate a camera from ChArUco views (image folder, video, or a live device)",
+        "Detect a ChArUco board in SOURCE (a folder or glob of images, a video file, or a device such as "
+        "/dev/video0), keep sharp and distinct views, calibrate, drop outlier views, report per-view "
+        "error and image coverage, and write the OpenCV YAML camera file every other command reads.",
+    )
+    calibrate.add_argument("source", metavar="SOURCE", help="image folder or glob, video file, or device")
+    calibrate.add_argument("--charuco", required=True, metavar="CxR", help="board squares across x down, e.g. 5x7")
+    calibrate.add_argument("--square-m", type=positive_float, required=True, help="chessboard square side, metres")
+    calibrate.add_argument("--marker-m", type=positive_float, required=True, help="marker side, metres")
+    calibrate.add_argument("--dictionary", required=True, help="cv2.aruco dictionary of the board's markers")
+    calibrate.add_argument("--legacy", action="store_true", help="the board uses the legacy (pre-4.6) pattern")
+    calibrate.add_argument("--out", type=Path, required=True, help="camera YAML file to write")
+    calibrate.add_argument("--max-views", type=int_at_least(3), default=40, help="views used at most (default 40)")
+    calibrate.add_argument("--min-views", type=int_at_least(3), default=6, help="views needed at least (default 6)")
+    calibrate.add_argument(
+        "--rrd", type=Path, default=None, help="rerun recording of the calibration (default: beside --out)"
+    )
+    calibrate.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
+    calibrate.add_argument("--fps", type=positive_float, default=None, help="device: frames per second to ask for")
+    calibrate.add_argument("--width", type=int_at_least(1), default=None, help="device: frame width to ask for")
+    calibrate.add_argument("--height", type=int_at_least(1), default=None, help="device: frame height to ask for")
+    calibrate.add_argument(
+        "--duration-s", type=positive_float, default=60.0, help="device: stop capturing after this long (default 60)"
+    )
+    calibrate.set_defaults(func=cmd_calibrate)
+    study = add_command(
+        commands,
+        "study",
+        "reproduce the PnP textbook's experiments: outliers, ransac, jitter",
+        "Each study writes NAME.png, NAME.md, NAME.json and NAME.rrd to --out (default recordings/study/).",
+    )
+    from ..tools.study.options import configure_parser as configure_study
+
+    configure_study(study)
+    study.set_defaults(func=cmd_study)
+
+
+def cmd_study(args: argparse.Namespace) -> int:
+    from ..tools.study.command import run_study
+
+    return run_study(args)
+
+
+def cmd_markers(args: argparse.Namespace) -> int:
+    from ..tools.markers import run_markers
+
+    return run_markers(args)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from ..tools.calibrate import run_calibrate
+
+    return run_calibrate(args)
