@@ -51,7 +51,6 @@ from ..track.tracker import FrameResult, TargetResult
 from .blueprints import run_blueprint
 from .parts import closed_squares, entity_name, mesh3d
 from .sinks import Recording
-from .viewer import spawn_local_viewer  # noqa: F401 - still imported from here by the calibrate tool
 
 __all__ = ["RerunRecorder"]
 

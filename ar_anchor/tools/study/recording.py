@@ -1,20 +1,21 @@
 """A study's rerun recording: its figure and table, its numbers as time series, and (outliers) the
-problem's points, (jitter) each distance's view and the per-frame rotation errors."""
+problem's points, (jitter) each distance's view and the per-frame rotation errors; logged through
+:class:`ar_anchor.viz.sinks.Recording`."""
 
 from __future__ import annotations
 
-import math
-import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import cv2
+import numpy as np
 
-from ...errors import OutputError
 from ...geometry import Pose, angle_between_deg
 from .jitter import JITTER_SERIES, STYLES, JitterSetup
 from .pnp import PnPSetup, make_correspondences
+
+if TYPE_CHECKING:
+    from ...viz.sinks import Recording
 
 __all__ = ["PLOTS", "StudyRecording", "jitter_frame_logger", "record_result"]
 
@@ -33,55 +34,34 @@ PLOTS = {
     ],
 }
 
+_HONEST, _REPLACED, _POINTS = (40, 200, 80), (230, 50, 50), (200, 200, 200)
+
 
 class StudyRecording:
-    """One study's rerun recording, written to ``<out>/<name>.rrd`` (renamed into place when complete)."""
+    """One study's rerun recording, written to ``<out>/<name>.rrd`` (renamed into place when complete);
+    :attr:`recording` is the :class:`~ar_anchor.viz.sinks.Recording` the study's numbers are logged to."""
 
     def __init__(self, path: Path, name: str, plots: Sequence[tuple[str, str]]) -> None:
-        import rerun as rr
-        import rerun.blueprint as rrb
+        # (imports rerun: only when a study runs, not on every CLI start)
+        from ...viz.blueprints import study_blueprint
+        from ...viz.sinks import Recording
 
-        self.rr = rr
-        self.path = path
-        self.partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        self.rec = rr.RecordingStream("ar_anchor_study")
-        blueprint = rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Vertical(
-                    rrb.Spatial2DView(origin=f"{name}/figure", name="Figure"),
-                    rrb.TextDocumentView(origin=f"{name}/table", name="Table"),
-                    row_shares=[3, 2],
-                ),
-                rrb.Vertical(*[rrb.TimeSeriesView(origin=origin, name=title) for origin, title in plots]),
-                column_shares=[3, 2],
-            ),
-            collapse_panels=True,
+        self.recording: Recording = Recording(
+            "ar_anchor_study",
+            path=path,
+            partial=True,
+            blueprint=study_blueprint(name, plots),
+            name=f"ar-anchor study {name}",
         )
-        self.rec.set_sinks(rr.FileSink(str(self.partial)), default_blueprint=blueprint)
-        self.rec.send_recording_name(f"ar-anchor study {name}")
-
-    def scalar(self, entity: str, value: float | None) -> None:
-        if value is not None and math.isfinite(value):
-            self.rec.log(entity, self.rr.Scalars(float(value)))
-
-    def time(self, timeline: str, value: int) -> None:
-        self.rec.set_time(timeline, sequence=int(value))
 
     def documents(self, name: str, figure: Path, markdown: str) -> None:
-        rr = self.rr
-        self.rec.log(f"{name}/figure", rr.EncodedImage(path=figure), static=True)
-        self.rec.log(f"{name}/table", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+        """The study's figure (``<name>/figure``) and table (``<name>/table``), static."""
+        self.recording.image_file(f"{name}/figure", figure)
+        self.recording.markdown(f"{name}/table", markdown)
 
     def close(self) -> None:
-        try:
-            self.rec.flush(timeout_sec=30.0)
-        finally:
-            self.rec.disconnect()
-        try:
-            os.replace(self.partial, self.path)
-        except OSError as err:
-            self.partial.unlink(missing_ok=True)
-            raise OutputError(f"{self.path}: cannot write ({err.strerror})") from None
+        """Flush (at most 30 s) and rename the file into place."""
+        self.recording.close(keep=True, timeout_s=30.0)
 
 
 def record_result(
@@ -90,83 +70,72 @@ def record_result(
     """A finished study's numbers as time series (outliers: also each seed's pixels and the points;
     jitter: each distance's noise-free ``views``)."""
     if name == "outliers":
-        _record_outliers(recording, setup, result)
+        _record_outliers(recording.recording, setup, result)
     elif name == "ransac":
-        _record_ransac(recording, result)
+        _record_ransac(recording.recording, result)
     else:
-        _record_jitter_summary(recording, {**result, "views": views})
+        _record_jitter_summary(recording.recording, {**result, "views": views})
 
 
-def _record_outliers(recording: StudyRecording, setup: PnPSetup, result: dict[str, Any]) -> None:
-    rr = recording.rr
+def _record_outliers(rec: Recording, setup: PnPSetup, result: dict[str, Any]) -> None:
     for row in result["seeds"]:
-        recording.time("seed", row["seed"])
-        recording.scalar("outliers/translation_error_m/solvePnP", row["plain_error_m"])
-        recording.scalar("outliers/translation_error_m/ransac_lm", row["ransac_error_m"])
-        recording.scalar("outliers/inliers/ransac", row["inliers"])
-        recording.scalar("outliers/inliers/honest", row["honest_inliers"])
+        rec.time("seed", sequence=row["seed"])
+        rec.scalar("outliers/translation_error_m/solvePnP", row["plain_error_m"])
+        rec.scalar("outliers/translation_error_m/ransac_lm", row["ransac_error_m"])
+        rec.scalar("outliers/inliers/ransac", row["inliers"])
+        rec.scalar("outliers/inliers/honest", row["honest_inliers"])
         problem = make_correspondences(setup, result["settings"]["contamination"], row["seed"])
-        recording.rec.log(
-            "outliers/image/honest",
-            rr.Points2D(problem.pixels[problem.honest] + 0.5, radii=3.0, colors=[(40, 200, 80)]),
-        )
-        recording.rec.log(
-            "outliers/image/replaced",
-            rr.Points2D(problem.pixels[~problem.honest] + 0.5, radii=3.0, colors=[(230, 50, 50)]),
-        )
+        rec.image_points("outliers/image/honest", problem.pixels[problem.honest], radius=3.0, colours=[_HONEST])
+        rec.image_points("outliers/image/replaced", problem.pixels[~problem.honest], radius=3.0, colours=[_REPLACED])
     first = make_correspondences(setup, result["settings"]["contamination"], result["seeds"][0]["seed"])
-    recording.rec.log(
-        "outliers/world/points", rr.Points3D(first.points_in_world, radii=0.03, colors=[(200, 200, 200)]), static=True
-    )
-    recording.rec.log(
+    rec.points3d("outliers/world/points", first.points_in_world, radius=0.03, colours=[_POINTS], static=True)
+    rec.points3d(
         "outliers/world/true_camera",
-        rr.Points3D(
-            [setup.camera_from_world.camera_centre()], radii=0.08, colors=[(40, 200, 80)], labels=["true camera"]
-        ),
+        np.array([setup.camera_from_world.camera_centre()]),
+        radius=0.08,
+        colours=[_HONEST],
+        labels=["true camera"],
         static=True,
     )
 
 
-def _record_ransac(recording: StudyRecording, result: dict[str, Any]) -> None:
+def _record_ransac(rec: Recording, result: dict[str, Any]) -> None:
     for cell in result["cells"]:
-        recording.time("contamination_pct", round(cell["contamination_pct"]))
+        rec.time("contamination_pct", sequence=round(cell["contamination_pct"]))
         key = f"{cell['threshold_px']:g}px".replace(".", "_")
         error = cell["median_error_m"]
-        recording.scalar(f"ransac/median_error_mm/{key}", None if error is None else 1e3 * error)
-        recording.scalar(f"ransac/median_recall/{key}", cell["median_recall"])
-        recording.scalar(f"ransac/success_pct/{key}", cell["success_pct"])
+        rec.scalar(f"ransac/median_error_mm/{key}", None if error is None else 1e3 * error)
+        rec.scalar(f"ransac/median_recall/{key}", cell["median_recall"])
+        rec.scalar(f"ransac/success_pct/{key}", cell["success_pct"])
 
 
-def _record_jitter_summary(recording: StudyRecording, result: dict[str, Any]) -> None:
-    rr = recording.rr
+def _record_jitter_summary(rec: Recording, result: dict[str, Any]) -> None:
     for row, view in zip(result["distances"], result["views"]):
-        recording.time("distance_mm", round(1e3 * row["distance_m"]))
+        rec.time("distance_mm", sequence=round(1e3 * row["distance_m"]))
         for target, pipeline in STYLES:
             metrics = row[f"{target}_{pipeline}"]
             for metric in ("rotation_std_deg", "distance_std_mm", "flipped_pct"):
-                recording.scalar(f"jitter/{metric}/{target}_{pipeline}", metrics.get(metric))
-        small = cv2.resize(view, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-        ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 80])
-        if ok:
-            recording.rec.log("jitter/view", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+                rec.scalar(f"jitter/{metric}/{target}_{pipeline}", metrics.get(metric))
+        rec.jpeg("jitter/view", view, quality=80, scale=0.5)
 
 
 def jitter_frame_logger(recording: StudyRecording, setup: JitterSetup) -> Callable[..., None]:
     """Per-frame rotation error against the truth, raw and tracked, on one ``frame`` timeline across distances."""
+    rec = recording.recording
 
     def log_frame(d_index: int, index: int, result: Any, truth: dict[str, Pose]) -> None:
-        recording.time("frame", d_index * setup.frames + index)
-        recording.time("distance_mm", round(1e3 * setup.distances_m[d_index]))
+        rec.time("frame", sequence=d_index * setup.frames + index)
+        rec.time("distance_mm", sequence=round(1e3 * setup.distances_m[d_index]))
         for target, name in JITTER_SERIES:
             measured, true = result.targets.get(name), truth.get(name)
             if measured is None or true is None:
                 continue
             if measured.raw is not None:
-                recording.scalar(
+                rec.scalar(
                     f"jitter/frames/rotation_error_deg/{target}_raw",
                     angle_between_deg(measured.raw.rotation, true.rotation),
                 )
-            recording.scalar(
+            rec.scalar(
                 f"jitter/frames/rotation_error_deg/{target}_tracker",
                 angle_between_deg(measured.pose.rotation, true.rotation),
             )
