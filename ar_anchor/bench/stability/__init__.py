@@ -61,7 +61,6 @@ from .metrics import (
     ambiguous_vs_raw,
     is_decisive,
     longest_stretch,
-    mean_rotation,
     predicted_error_stats,
     wrong_tracked,
 )
@@ -85,7 +84,6 @@ __all__ = [
     "handheld_scenarios",
     "is_decisive",
     "longest_stretch",
-    "mean_rotation",
     "predicted_error_stats",
     "run_scenario",
     "stability_markdown",
@@ -94,8 +92,3 @@ __all__ = [
     "wrong_tracked",
     "write_stability_report",
 ]
-
-# ar_anchor.bench.study imports ``_mean_rotation`` (and FLIP_DEG, SETTLE_FRAMES) from here until it
-# moves (issue 17): then it takes ``mean_rotation`` from .metrics and the constants from ..report, and
-# this alias goes.
-_mean_rotation = mean_rotation

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ...geometry import Pose, angle_between_deg, pose_errors
+from ...geometry import Pose, angle_between_deg, mean_rotation, pose_errors
 from ..report import FLIP_DEG, SETTLE_FRAMES
 
 __all__ = [
@@ -22,7 +22,6 @@ __all__ = [
     "count_twitches",
     "is_decisive",
     "longest_stretch",
-    "mean_rotation",
     "predicted_error_stats",
     "rotation_errors",
     "series_metrics",
@@ -49,15 +48,6 @@ def is_decisive(hypotheses: Sequence[Any]) -> bool:
     if not (math.isfinite(best) and math.isfinite(other)):
         return False
     return other >= DECISIVE_RATIO * best and other - best >= DECISIVE_MARGIN_PX
-
-
-def mean_rotation(rotations: Sequence[np.ndarray]) -> np.ndarray:
-    """The chordal mean of 3x3 rotation matrices (the SVD projection of their sum onto the rotations)."""
-    u, _, vt = np.linalg.svd(np.sum(rotations, axis=0))
-    mean = u @ vt
-    if np.linalg.det(mean) < 0:
-        mean = u @ np.diag([1.0, 1.0, -1.0]) @ vt
-    return mean
 
 
 def rotation_errors(poses: Sequence[Pose | None], truth: Sequence[Pose | None]) -> np.ndarray:
