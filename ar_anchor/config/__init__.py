@@ -17,43 +17,22 @@ file without ``[[boards]]`` has no boards, one without ``[markers.lengths_m]`` h
 
 from __future__ import annotations
 
+from . import model
 from .board import BOARD_KINDS, BoardConfig
 from .dictionaries import CORNER_REFINEMENTS, dictionary_id, dictionary_names, dictionary_size
 from .keys import ConfigValueError
-from .model import (
-    DEMO_BOARD,
-    DEMO_LENGTHS_M,
-    OVERLAY_KINDS,
-    DetectorConfig,
-    FilterConfig,
-    MarkersConfig,
-    OverlayConfig,
-    PoseConfig,
-    RecordingConfig,
-    TrackerConfig,
-    demo_config,
-)
+from .model import *  # noqa: F403 - model.__all__, exported as this package's own (below)
 from .read import load_config, parse_config
 
 __all__ = [
     "BOARD_KINDS",
     "CORNER_REFINEMENTS",
-    "DEMO_BOARD",
-    "DEMO_LENGTHS_M",
-    "OVERLAY_KINDS",
     "BoardConfig",
     "ConfigValueError",
-    "DetectorConfig",
-    "FilterConfig",
-    "MarkersConfig",
-    "OverlayConfig",
-    "PoseConfig",
-    "RecordingConfig",
-    "TrackerConfig",
-    "demo_config",
     "dictionary_id",
     "dictionary_names",
     "dictionary_size",
     "load_config",
     "parse_config",
 ]
+__all__ += model.__all__  # the tables, TrackerConfig, the demo's config

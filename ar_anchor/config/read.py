@@ -30,15 +30,7 @@ from ..errors import ConfigError
 from .board import BOARD_KEYS, BoardConfig, BoardKeys, CustomBoardKeys
 from .dictionaries import dictionary_size
 from .keys import ConfigValueError, Key, declared, default_of, table_keys
-from .model import (
-    DetectorConfig,
-    FilterConfig,
-    MarkersConfig,
-    OverlayConfig,
-    PoseConfig,
-    RecordingConfig,
-    TrackerConfig,
-)
+from .model import OverlayConfig, TrackerConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -107,8 +99,9 @@ def read_keys(table: Table, cls: type, limit: int = 0) -> dict[str, Any]:
     return values
 
 
-def read_table(root: Table, name: str, cls: type, limit: int = 0) -> Any:
-    """``[name]`` of ``root`` as a ``cls`` (absent: all defaults)."""
+def read_table(root: Table, name: str, limit: int = 0) -> Any:
+    """``[name]`` of ``root`` as the dataclass :class:`TrackerConfig` declares for it (absent: all defaults)."""
+    cls = declared(TrackerConfig, name)[1].kind
     table = Table(root.data.pop(name, {}), f"[{name}]", root.path)
     values = read_keys(table, cls, limit)
     table.done(_names(cls))
@@ -204,13 +197,13 @@ def _base_folder(path: str) -> Path:
 def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConfig:
     """Validate a parsed TOML document into a :class:`TrackerConfig` (``path``: named in errors)."""
     root = Table(data, "top level", path)
-    detector = read_table(root, "detector", DetectorConfig)
+    detector = read_table(root, "detector")
     limit = dictionary_size(detector.dictionary)
-    markers = read_table(root, "markers", MarkersConfig, limit)
+    markers = read_table(root, "markers", limit)
     boards = _read_boards(root, detector.dictionary, limit, markers.lengths_m)
-    pose = read_table(root, "pose", PoseConfig)
-    filter_config = read_table(root, "filter", FilterConfig)
-    recording = read_table(root, "recording", RecordingConfig)
+    pose = read_table(root, "pose")
+    filter_config = read_table(root, "filter")
+    recording = read_table(root, "recording")
     overlays = _read_overlays(root)
     root.done(_names(TrackerConfig))
     return TrackerConfig(
