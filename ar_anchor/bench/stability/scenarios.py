@@ -87,32 +87,20 @@ class Scenario:
             return Trajectory(
                 kind="static", near_m=self.distance_m, azimuth_deg=self.tilt_deg, elevation_deg=0.0, roll_deg=0.0
             )
-        if self.motion == "wobble":  # nearly fronto-parallel, small hand-held motion
+        orbits = {  # motion: azimuth, elevation, roll (deg), cycles of an orbit at constant distance
+            "wobble": (self.tilt_deg + 4.0, 3.0, 2.0, 1.0),  # nearly fronto-parallel, small hand-held motion
+            "orbit": (35.0, 15.0, 10.0, seconds * 45.0 / (2 * math.pi * 35.0)),  # about 45 deg/s at the peak
+            "fast": (45.0, 5.0, 0.0, seconds * 90.0 / (2 * math.pi * 45.0)),  # 90 deg/s at the peak
+        }
+        if self.motion in orbits:
+            azimuth, elevation, roll, cycles = orbits[self.motion]
             return Trajectory(
                 kind="orbit",
                 near_m=self.distance_m,
-                azimuth_deg=self.tilt_deg + 4.0,
-                elevation_deg=3.0,
-                roll_deg=2.0,
-                cycles=1.0,
-            )
-        if self.motion == "orbit":  # about 45 deg/s at the peak
-            return Trajectory(
-                kind="orbit",
-                near_m=self.distance_m,
-                azimuth_deg=35.0,
-                elevation_deg=15.0,
-                roll_deg=10.0,
-                cycles=seconds * 45.0 / (2 * math.pi * 35.0),
-            )
-        if self.motion == "fast":  # 90 deg/s at the peak
-            return Trajectory(
-                kind="orbit",
-                near_m=self.distance_m,
-                azimuth_deg=45.0,
-                elevation_deg=5.0,
-                roll_deg=0.0,
-                cycles=seconds * 90.0 / (2 * math.pi * 45.0),
+                azimuth_deg=azimuth,
+                elevation_deg=elevation,
+                roll_deg=roll,
+                cycles=cycles,
             )
         if self.motion == "sweep":
             return Trajectory(
