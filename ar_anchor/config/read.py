@@ -17,6 +17,7 @@ the file, table and key (``configs/x.toml: [markers] length_m: must be > 0, got 
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import os
@@ -27,7 +28,7 @@ from typing import Any
 
 from ..boards import layout_from_mapping, read_layout
 from ..errors import ConfigError
-from .board import BOARD_KEYS, BoardConfig, BoardKeys, CustomBoardKeys
+from .board import BOARD_KEYS, BoardConfig, BoardKeys, CharucoBoardKeys, CustomBoardKeys
 from .dictionaries import dictionary_size
 from .keys import ConfigValueError, Key, declared, default_of, table_keys
 from .model import OverlayConfig, TrackerConfig
@@ -273,39 +274,40 @@ def read_board(table: Table, dictionary: str, limit: int) -> BoardConfig:
 def _board_of_cells(table: Table, name: str, kind: str, dictionary: str, limit: int) -> BoardConfig:
     """A grid or ChArUco board: a grid's keys are BoardConfig's; a ChArUco board's squares are its cells."""
     values = read_keys(table, BOARD_KEYS[kind], limit)
+    if kind == "charuco":
+        values = _charuco_as_board(table, values, dictionary)
+    board = BoardConfig(name=name, kind=kind, dictionary=dictionary, **values)
     if kind == "grid":
-        board = BoardConfig(name=name, kind=kind, dictionary=dictionary, **values)
         count, formula = board.cols * board.rows, "cols*rows"
     else:
-        keys = BOARD_KEYS[kind](**values)
-        if keys.marker_length_m >= keys.square_length_m:
-            raise table.fail(
-                "marker_length_m",
-                f"must be smaller than square_length_m ({keys.square_length_m:g}), got {keys.marker_length_m!r}",
-                keys.marker_length_m,
-            )
-        if "dictionary" in values and keys.dictionary.upper() != dictionary.upper():
-            problem = f"must be the detector's dictionary ({dictionary}), got {keys.dictionary!r}"
-            raise table.fail("dictionary", problem, keys.dictionary)
-        board = BoardConfig(
-            name=name,
-            kind=kind,
-            cols=keys.squares_x,
-            rows=keys.squares_y,
-            square_length_m=keys.square_length_m,
-            marker_length_m=keys.marker_length_m,
-            legacy=keys.legacy,
-            first_id=keys.first_id,
-            ids=keys.ids,
-            dictionary=dictionary,
-        )
-        count, formula = (keys.squares_x * keys.squares_y) // 2, "squares_x*squares_y//2"
+        count, formula = (board.cols * board.rows) // 2, "squares_x*squares_y//2"
     if board.ids and len(board.ids) != count:
         raise table.fail("ids", f"needs {formula} = {count} ids, got {len(board.ids)}", board.ids)
     if not board.ids and board.first_id + count > limit:
         last = board.first_id + count - 1
         raise table.fail("first_id", f"ids {board.first_id}..{last} exceed the dictionary's {limit} markers")
     return board
+
+
+# a ChArUco board's keys that BoardConfig names otherwise (the chessboard's squares are the board's cells)
+_CHARUCO_AS_BOARD = {"squares_x": "cols", "squares_y": "rows"}
+
+
+def _charuco_as_board(table: Table, values: dict[str, Any], dictionary: str) -> dict[str, Any]:
+    """A ChArUco table's keys (``values``: those it holds), checked against each other and against the
+    detector's ``dictionary``, as BoardConfig's keys (all but the dictionary; a missing one: its default)."""
+    keys = CharucoBoardKeys(**values)
+    if keys.marker_length_m >= keys.square_length_m:
+        raise table.fail(
+            "marker_length_m",
+            f"must be smaller than square_length_m ({keys.square_length_m:g}), got {keys.marker_length_m!r}",
+            keys.marker_length_m,
+        )
+    if "dictionary" in values and keys.dictionary.upper() != dictionary.upper():
+        problem = f"must be the detector's dictionary ({dictionary}), got {keys.dictionary!r}"
+        raise table.fail("dictionary", problem, keys.dictionary)
+    every = dataclasses.asdict(keys)
+    return {_CHARUCO_AS_BOARD.get(field, field): value for field, value in every.items() if field != "dictionary"}
 
 
 def _custom_board(table: Table, name: str, dictionary: str, limit: int) -> BoardConfig:
