@@ -89,32 +89,15 @@ def sheet_from_args(args: argparse.Namespace) -> MarkerSheet:
     mode = f"--board {board}"
     if _given(args, "ids"):
         raise InputError(f"--ids: not used with {mode} (a board's ids run from --first-id)")
+    placed = {"first_id": first_id, "name": name or board, "paper": paper}  # what either board takes alike
     if board == "grid":
         refuse(("square_mm", "legacy"), mode)
         require(("cols", "rows", "size_mm", "gap_mm"), mode)
-        return MarkerSheet.grid(
-            dictionary,
-            args.cols,
-            args.rows,
-            args.size_mm,
-            args.gap_mm,
-            first_id=first_id,
-            name=name or "grid",
-            paper=paper,
-        )
+        return MarkerSheet.grid(dictionary, args.cols, args.rows, args.size_mm, args.gap_mm, **placed)
     refuse(("gap_mm",), mode)
     require(("cols", "rows", "square_mm", "size_mm"), mode)
-    return MarkerSheet.charuco(
-        dictionary,
-        args.cols,
-        args.rows,
-        args.square_mm,
-        args.size_mm,
-        first_id=first_id,
-        legacy=bool(getattr(args, "legacy", False)),
-        name=name or "charuco",
-        paper=paper,
-    )
+    legacy = bool(getattr(args, "legacy", False))
+    return MarkerSheet.charuco(dictionary, args.cols, args.rows, args.square_mm, args.size_mm, legacy=legacy, **placed)
 
 
 def run_markers(args: argparse.Namespace) -> int:

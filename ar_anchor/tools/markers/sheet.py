@@ -13,6 +13,7 @@ import math
 import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -146,15 +147,7 @@ class MarkerSheet:
                 module,
             )
         return cls(
-            "grid",
-            dictionary,
-            ids,
-            float(size_mm),
-            cols=int(cols),
-            rows=int(rows),
-            gap_mm=float(gap_mm),
-            name=_check_name(name),
-            paper=_check_paper(paper),
+            "grid", dictionary, ids, float(size_mm), gap_mm=float(gap_mm), **_board_fields(cols, rows, name, paper)
         )
 
     @classmethod
@@ -187,12 +180,9 @@ class MarkerSheet:
             dictionary,
             ids,
             float(marker_mm),
-            cols=int(cols),
-            rows=int(rows),
             square_mm=float(square_mm),
             legacy=bool(legacy),
-            name=_check_name(name),
-            paper=_check_paper(paper),
+            **_board_fields(cols, rows, name, paper),
         )
 
     # ------------------------------------------------------------------ properties
@@ -373,6 +363,11 @@ def _check_name(name: str) -> str:
     if not name or not name.replace("_", "").replace("-", "").isalnum() or not name.isascii():
         raise InputError(f"--name: letters, digits, '-' and '_' only, got {name!r}")
     return name
+
+
+def _board_fields(cols: int, rows: int, name: str, paper: str) -> dict[str, Any]:
+    """The fields a grid and a ChArUco sheet share: their cells, and their name and paper, checked."""
+    return {"cols": int(cols), "rows": int(rows), "name": _check_name(name), "paper": _check_paper(paper)}
 
 
 def _check_ids(option: str, dictionary: str, ids: Sequence[int]) -> None:
