@@ -59,8 +59,18 @@ class PoseHypothesis:
     reproj_px: float
 
 
+class _Solved:
+    """What a marker's and a board's solved pose (:class:`MarkerPose`, :class:`BoardPose`) share."""
+
+    hypotheses: tuple[PoseHypothesis, ...]  # one or two, lower reprojection error first
+
+    @property
+    def best(self) -> PoseHypothesis:
+        return self.hypotheses[0]
+
+
 @dataclass(frozen=True)
-class MarkerPose:
+class MarkerPose(_Solved):
     """Validated pose hypotheses of one marker in one frame.
 
     ``hypotheses`` holds one or two entries sorted by reprojection error (the lower first);
@@ -78,10 +88,6 @@ class MarkerPose:
     @property
     def target(self) -> TargetId:
         return TargetId.marker(self.marker_id)
-
-    @property
-    def best(self) -> PoseHypothesis:
-        return self.hypotheses[0]
 
     @property
     def points_in_target(self) -> np.ndarray:
@@ -241,7 +247,7 @@ def solve_marker(
 
 
 @dataclass(frozen=True)
-class BoardPose:
+class BoardPose(_Solved):
     """Validated pose hypotheses of one rigid board in one frame, solved jointly from its markers.
 
     ``hypotheses``: one or two (a planar board's two IPPE solutions, which differ clearly once
@@ -264,10 +270,6 @@ class BoardPose:
     @property
     def target(self) -> TargetId:
         return TargetId.board(self.name)
-
-    @property
-    def best(self) -> PoseHypothesis:
-        return self.hypotheses[0]
 
     @property
     def inliers(self) -> int:
