@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -72,21 +72,27 @@ def _headline(meta: Mapping[str, Any], clips: Sequence[Mapping[str, Any]], comma
         "",
         f"Produced by `{command}` in {meta['wall_time_s']:.0f} s; {meta['frames_per_clip']} frames per clip, "
         f"the same frames for every pipeline.",
-        "",
-        "## Headline (default OpenCV threads: " + str(meta["opencv_threads"]) + ")",
-        "",
-        "Per-frame cost, median: opencv = grey conversion + `detectMarkers` + `solvePnP` per marker; tracker = "
-        "detect + pose + filter (`FrameResult.latency_ms`). *speed-up* = opencv median / tracker (ROI) median "
-        "(above 1: the tracker is faster). Errors: median over every target in view and every frame, of each "
-        "pipeline's output pose (the tracker's filtered pose, opencv's solvePnP pose); boards for the board "
-        "clip, markers otherwise. *ROI within 10 %*: the ROI tracker's median rotation and translation errors "
-        f"are at most 110 % of the full-frame tracker's, plus {ROI_FLOOR['rot_median_deg']:g} deg / "
-        f"{ROI_FLOOR['trans_median_pct']:g} % (a few micrometres: these clean frames give both trackers errors "
-        "so small that 10 % of them is below what they resolve; the JSON also has the plain 10 % test).",
-        "",
-        "| clip | opencv | tracker full frame | tracker ROI | speed-up opencv / ROI | rot err med deg "
-        "opencv / full / ROI | trans err med % opencv / full / ROI | ROI errors within 10 % of full frame |",
-        "|---|---|---|---|---|---|---|---|",
+        *_table_section(
+            "Headline (default OpenCV threads: " + str(meta["opencv_threads"]) + ")",
+            "Per-frame cost, median: opencv = grey conversion + `detectMarkers` + `solvePnP` per marker; tracker = "
+            "detect + pose + filter (`FrameResult.latency_ms`). *speed-up* = opencv median / tracker (ROI) median "
+            "(above 1: the tracker is faster). Errors: median over every target in view and every frame, of each "
+            "pipeline's output pose (the tracker's filtered pose, opencv's solvePnP pose); boards for the board "
+            "clip, markers otherwise. *ROI within 10 %*: the ROI tracker's median rotation and translation errors "
+            f"are at most 110 % of the full-frame tracker's, plus {ROI_FLOOR['rot_median_deg']:g} deg / "
+            f"{ROI_FLOOR['trans_median_pct']:g} % (a few micrometres: these clean frames give both trackers errors "
+            "so small that 10 % of them is below what they resolve; the JSON also has the plain 10 % test).",
+            [
+                "clip",
+                "opencv",
+                "tracker full frame",
+                "tracker ROI",
+                "speed-up opencv / ROI",
+                "rot err med deg opencv / full / ROI",
+                "trans err med % opencv / full / ROI",
+                "ROI errors within 10 % of full frame",
+            ],
+        ),
     ]
     for clip in clips:
         p = clip["pipelines"]
@@ -123,82 +129,75 @@ def _headline(meta: Mapping[str, Any], clips: Sequence[Mapping[str, Any]], comma
 
 def _stages(clips: Sequence[Mapping[str, Any]]) -> list[str]:
     """Per-stage times of every pipeline on every clip (default threads)."""
-    lines = [
-        "",
-        "## Stages (default threads)",
-        "",
+    lines = _table_section(
+        "Stages (default threads)",
         "ms per frame, median / p95 / mean. *fps*: 1000 / mean of the total (that part of the pipeline alone).",
-        "",
-        "| clip | pipeline | detect | pose | filter | total median / p95 | fps |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for clip in clips:
-        for key in PIPELINES:
-            pipe = clip["pipelines"][key]
+        ["clip", "pipeline", "detect", "pose", "filter", "total median / p95", "fps"],
+    )
+    for clip, pipe in _clip_pipelines(clips):
 
-            def trip(stage: str, pipe: Mapping[str, Any] = pipe) -> str:
-                s = pipe["stages"].get(stage)
-                return " / ".join(fmt(s[k]) for k in ("median", "p95", "mean")) if s else "-"
+        def trip(stage: str, pipe: Mapping[str, Any] = pipe) -> str:
+            s = pipe["stages"].get(stage)
+            return " / ".join(fmt(s[k]) for k in ("median", "p95", "mean")) if s else "-"
 
-            total = pipe["total_ms"]
-            lines.append(
-                f"| {clip['label']} | {pipe['label']} | {trip('detect_ms')} | {trip('pose_ms')} | {trip('filter_ms')} "
-                f"| {fmt(total['median'])} / {fmt(total['p95'])} | {fmt(pipe['fps'], 0)} |"
-            )
+        total = pipe["total_ms"]
+        lines.append(
+            f"| {clip['label']} | {pipe['label']} | {trip('detect_ms')} | {trip('pose_ms')} | {trip('filter_ms')} "
+            f"| {fmt(total['median'])} / {fmt(total['p95'])} | {fmt(pipe['fps'], 0)} |"
+        )
     return lines
 
 
 def _accuracy(clips: Sequence[Mapping[str, Any]]) -> list[str]:
     """Errors against ground truth of every pipeline on every clip."""
-    lines = [
-        "",
-        "## Accuracy against ground truth",
-        "",
+    lines = _table_section(
+        "Accuracy against ground truth",
         "Over all frames (from frame 0: the tracker's filter start included) and every target in view. *found*: "
         "share of (frame, target in view) pairs with an output pose (the tracker also outputs predicted poses "
         "through short gaps). Markers: each marker's own pose (board members too); board: the board's pose.",
-        "",
-        "| clip | pipeline | markers found % | marker rot med / p95 deg | marker trans med / p95 % "
-        "| board found % | board rot med / p95 deg | board trans med / p95 % |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for clip in clips:
-        for key in PIPELINES:
-            pipe = clip["pipelines"][key]
-            m, b = pipe["accuracy"]["marker"], pipe["accuracy"]["board"]
+        [
+            "clip",
+            "pipeline",
+            "markers found %",
+            "marker rot med / p95 deg",
+            "marker trans med / p95 %",
+            "board found %",
+            "board rot med / p95 deg",
+            "board trans med / p95 %",
+        ],
+    )
+    for clip, pipe in _clip_pipelines(clips):
+        m, b = pipe["accuracy"]["marker"], pipe["accuracy"]["board"]
 
-            def pair(acc: Mapping[str, Any], a: str, b: str) -> str:
-                return f"{fmt_sig(acc.get(a))} / {fmt_sig(acc.get(b))}" if acc.get("found") else "-"
+        def pair(acc: Mapping[str, Any], a: str, b: str) -> str:
+            return f"{fmt_sig(acc.get(a))} / {fmt_sig(acc.get(b))}" if acc.get("found") else "-"
 
-            lines.append(
-                f"| {clip['label']} | {pipe['label']} | {fmt(m.get('found_pct'), 1)} "
-                f"| {pair(m, 'rot_median_deg', 'rot_p95_deg')} | {pair(m, 'trans_median_pct', 'trans_p95_pct')} "
-                f"| {fmt(b.get('found_pct'), 1) if b.get('in_view') else '-'} "
-                f"| {pair(b, 'rot_median_deg', 'rot_p95_deg')} | {pair(b, 'trans_median_pct', 'trans_p95_pct')} |"
-            )
+        lines.append(
+            f"| {clip['label']} | {pipe['label']} | {fmt(m.get('found_pct'), 1)} "
+            f"| {pair(m, 'rot_median_deg', 'rot_p95_deg')} | {pair(m, 'trans_median_pct', 'trans_p95_pct')} "
+            f"| {fmt(b.get('found_pct'), 1) if b.get('in_view') else '-'} "
+            f"| {pair(b, 'rot_median_deg', 'rot_p95_deg')} | {pair(b, 'trans_median_pct', 'trans_p95_pct')} |"
+        )
     return lines
 
 
 def _one_core(meta: Mapping[str, Any], clips: Sequence[Mapping[str, Any]]) -> list[str]:
     """The one-core pass (``cv2.setNumThreads(1)``) against the default threads."""
-    lines = [
-        "",
-        "## One core: `cv2.setNumThreads(1)`",
-        "",
+    labels = [PIPELINE_LABELS[key] for key in ONE_THREAD_PIPELINES]
+    lines = _table_section(
+        "One core: `cv2.setNumThreads(1)`",
         f"The plain loop and the default tracker (ROI) again, on the same frames, with OpenCV limited to one "
         f"thread (restored to {meta['opencv_threads']} afterwards). Total ms per frame, median / p95; fps = "
         "1000 / mean; *slow-down*: one-thread median / default-threads median."
         + ("" if all(c["one_thread"] for c in clips) else " Run at the largest size only."),
-        "",
-        "| clip | "
-        + " | ".join(PIPELINE_LABELS[key] for key in ONE_THREAD_PIPELINES)
-        + " | speed-up opencv / ROI | fps "
-        + " / ".join(PIPELINE_LABELS[key] for key in ONE_THREAD_PIPELINES)
-        + " | slow-down vs default threads "
-        + " / ".join(PIPELINE_LABELS[key] for key in ONE_THREAD_PIPELINES)
-        + " |",
-        "|---|" + "---|" * (len(ONE_THREAD_PIPELINES) + 3),
-    ]
+        [
+            "clip",
+            *labels,
+            "speed-up opencv / ROI",
+            "fps " + " / ".join(labels),
+            "slow-down vs default threads " + " / ".join(labels),
+        ],
+    )
     for clip in clips:
         single = clip["one_thread"]
         if not single:
@@ -222,20 +221,16 @@ def _one_core(meta: Mapping[str, Any], clips: Sequence[Mapping[str, Any]]) -> li
 
 def _end_to_end(e2e: Mapping[str, Any]) -> list[str]:
     """Decode -> track -> overlay -> log, stage by stage."""
-    lines = [
-        "",
-        f"## End to end: {e2e['size']} one marker, tracker (ROI), default threads",
-        "",
+    lines = _table_section(
+        f"End to end: {e2e['size']} one marker, tracker (ROI), default threads",
         f"Each frame goes through decode -> track -> overlay -> log, one stage after the other. *decode*: "
         f"`VideoFileSource` reading the clip encoded once to H.264 ({fmt(e2e['video_mb'], 1)} MB); *track*: "
         f"`Tracker.process`; *render*: `OverlayRenderer.annotate` (cube on `marker:*`); *log*: "
         f"`RerunRecorder.log_frame` (JPEG image and overlay, detections, 3D scene, metrics; default "
         f"recording settings) to a temporary .rrd ({fmt(e2e['rrd_mb'], 1)} MB). The first "
         f"{e2e['frames_excluded']} of {e2e['frames']} frames are left out (first-frame costs).",
-        "",
-        "| stage | median ms | p95 ms | mean ms |",
-        "|---|---|---|---|",
-    ]
+        ["stage", "median ms", "p95 ms", "mean ms"],
+    )
     names = {"decode_ms": "decode", "track_ms": "track", "render_ms": "render (overlay)", "log_ms": "log (rerun)"}
     for stage in E2E_STAGES:
         s = e2e["stages"][stage]
@@ -252,6 +247,18 @@ def _end_to_end(e2e: Mapping[str, Any]) -> list[str]:
         f"{fmt_sig(e2e['accuracy']['marker'].get('trans_median_pct'))} % (median).",
     ]
     return lines
+
+
+def _table_section(title: str, text: str, columns: Sequence[str]) -> list[str]:
+    """A section's first lines: its title, what it shows and the head of its table."""
+    return ["", f"## {title}", "", text, "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+
+
+def _clip_pipelines(clips: Sequence[Mapping[str, Any]]) -> Iterator[tuple[Mapping[str, Any], Mapping[str, Any]]]:
+    """(clip, one pipeline's results on it) for every pipeline (default threads) on every clip."""
+    for clip in clips:
+        for key in PIPELINES:
+            yield clip, clip["pipelines"][key]
 
 
 def _memory(memory: Mapping[str, Any]) -> list[str]:
