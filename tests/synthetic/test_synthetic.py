@@ -12,18 +12,7 @@ from ar_anchor.geometry import Pose, look_at, marker_corners_in_marker
 from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory, board_marker_poses, demo_scene
 from ar_anchor.track.detection import Detector
-
-LENGTH = 0.05
-
-
-def random_view(rng: np.random.Generator, near: float, far: float, tilt_deg: float = 50.0) -> Pose:
-    """camera_from_world looking at the origin from a random direction, with a random roll."""
-    distance = rng.uniform(near, far)
-    az, el = np.radians(rng.uniform(-tilt_deg, tilt_deg, 2))
-    eye = distance * np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
-    look = np.array([*rng.uniform(-0.03, 0.03, 2), 0.0])
-    roll = Pose(np.array([0.0, 0.0, rng.uniform(-math.pi, math.pi)]), np.zeros(3))
-    return roll.compose(look_at(eye, look))
+from tests.helpers import LENGTH, random_view
 
 
 def single_marker_source(camera, **kwargs) -> SyntheticSource:

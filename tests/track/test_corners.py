@@ -9,11 +9,12 @@ import pytest
 from ar_anchor.boards import read_layout
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import DetectorConfig
-from ar_anchor.geometry import Pose, look_at, marker_corners_in_marker
+from ar_anchor.geometry import Pose, marker_corners_in_marker
 from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 from ar_anchor.track.corners import FITTED, NOT_TRIED, REJECTED, fit_corners_by_edges, refine_corners_by_edges
 from ar_anchor.track.detection import Detector
+from tests.helpers import corner_view, distorted_camera
 
 CELLS = 6  # DICT_4X4_50: 4 bits + the border on each side
 
@@ -56,19 +57,6 @@ def test_edge_corners_beat_opencv_subpix_on_far_markers(distance_m):
     assert rms_edges < 0.12, rms_edges
     assert rms_edges < 0.5 * rms_subpix, (rms_edges, rms_subpix)
     assert np.all(np.abs(edges.mean(axis=0)) < 0.08)  # no systematic shift
-
-
-def distorted_camera() -> CameraModel:
-    k = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
-    return CameraModel(k, np.array([-0.32, 0.12, 0.0005, -0.0004, 0.0]), 640, 480)
-
-
-def corner_view(camera: CameraModel) -> tuple[SyntheticSource, Pose]:
-    """A 20 cm marker placed in the image's top-left corner region, where barrel distortion bends its sides."""
-    scene = SyntheticScene(camera=camera, markers=(PlacedMarker(5, 0.2, Pose.identity()),), frames=1, seed=1)
-    # the camera looks at a point right of and below the marker, so the marker lands top-left
-    camera_from_world = look_at((0.22, -0.16, 0.6), (0.22, -0.16, 0.0))
-    return SyntheticSource(scene), camera_from_world
 
 
 def test_distorted_rendering_follows_project_points():

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_replay_live import (
+from tests.helpers import (
     POSES_HEADER,
     assert_no_traceback,
     cli,

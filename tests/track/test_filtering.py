@@ -14,6 +14,7 @@ from ar_anchor.config import FilterConfig, demo_config
 from ar_anchor.geometry import Pose, angle_between_deg, marker_corners_in_marker, matrix_from_rvec
 from ar_anchor.track.filtering import RotationFilter, TargetTrack, TranslationFilter, pose_covariance
 from ar_anchor.track.pose import MarkerPose, PoseHypothesis
+from tests.helpers import mirrored
 
 DT = 1.0 / 30.0
 
@@ -148,16 +149,6 @@ def hypotheses_for(truth: Pose, wrong: Pose, camera, err_true: float, err_wrong:
     ordered = sorted([PoseHypothesis(truth, err_true), PoseHypothesis(wrong, err_wrong)], key=lambda h: h.reproj_px)
     ratio = (ordered[1].reproj_px + 1e-3) / (ordered[0].reproj_px + 1e-3)
     return MarkerPose(0, 0.05, corners, tuple(ordered), ratio, "ippe_square")
-
-
-def mirrored(pose: Pose) -> Pose:
-    """The other IPPE solution of a square: its normal mirrored through the line of sight."""
-    sight = pose.tvec / np.linalg.norm(pose.tvec)
-    normal = pose.rotation[:, 2]
-    axis = np.cross(normal, sight if normal @ sight > 0 else -sight)
-    angle = 2.0 * math.asin(min(np.linalg.norm(axis), 1.0))
-    turn = matrix_from_rvec(axis / np.linalg.norm(axis) * angle)
-    return Pose.from_matrix(turn @ pose.rotation, pose.tvec)
 
 
 def flipped(pose: Pose, degrees: float = 40.0) -> Pose:

@@ -15,7 +15,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -27,25 +26,25 @@ from ar_anchor.camera import CameraModel
 from ar_anchor.geometry import Pose, angle_between_deg
 from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
+from tests.helpers import (
+    POSES_HEADER,
+    TIMEOUT_S,
+    assert_no_traceback,
+    cli,
+    count_decoded_frames,
+    describe,
+    error_lines,
+    verify_rrd,
+)
 
 pytestmark = pytest.mark.slow
 
-TIMEOUT_S = 60
-RERUN = Path(sys.executable).with_name("rerun")
-POSES_HEADER = (
-    "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
-    "raw_rvec_x,raw_rvec_y,raw_rvec_z,raw_tvec_x,raw_tvec_y,raw_tvec_z,reproj_px,ambiguity"
-)
 FRAMES = 24
 SIZE = (640, 480)
 MARKER_LENGTH_M = 0.05
 
 
 # ============================================================================ helpers
-
-
-def cli(args: list[str]) -> list[str]:
-    return [sys.executable, "-m", "ar_anchor", *args]
 
 
 def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -67,29 +66,6 @@ def run_all(commands: dict[str, tuple[list[str], Path]]) -> dict[str, subprocess
             stdout, stderr = process.communicate()
         results[key] = subprocess.CompletedProcess(args, process.returncode, stdout, stderr)
     return results
-
-
-def describe(result: subprocess.CompletedProcess[str]) -> str:
-    return f"exit {result.returncode}\nstdout: {result.stdout!r}\nstderr: {result.stderr!r}"
-
-
-def assert_no_traceback(result: subprocess.CompletedProcess[str]) -> None:
-    assert "Traceback" not in result.stderr and "Traceback" not in result.stdout, describe(result)
-    assert "internal error" not in result.stderr, describe(result)
-
-
-def error_lines(stderr: str) -> list[str]:
-    return [line for line in stderr.splitlines() if line.startswith("ar-anchor: error:")]
-
-
-def verify_rrd(path: Path) -> None:
-    assert path.is_file() and path.stat().st_size > 0, f"{path} missing or empty"
-    if not RERUN.exists():
-        pytest.skip(f"{RERUN} not found: {path} not verified")
-    result = subprocess.run(
-        [str(RERUN), "rrd", "verify", str(path)], capture_output=True, text=True, timeout=TIMEOUT_S, check=False
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
 
 
 def read_poses(path: Path) -> list[dict[str, str]]:
@@ -151,18 +127,6 @@ def run_and_interrupt(argv: list[str], cwd: Path, out: Path, frames: int = 10) -
     assert summary["status"] == "interrupted"
     verify_rrd(out / "recording.rrd")
     return summary
-
-
-def count_decoded_frames(path: Path) -> int:
-    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    assert capture.isOpened(), f"{path}: cannot be opened"
-    count = 0
-    try:
-        while capture.read()[0]:
-            count += 1
-    finally:
-        capture.release()
-    return count
 
 
 def write_video(path: Path, fourcc: str, images: list[np.ndarray], fps: float = 30.0) -> bool:
@@ -561,7 +525,7 @@ def test_live_record_then_replay_is_frame_exact(tmp_path):
     assert ok and image.shape[:2] == (360, 640)
     # when the recording is replayed (camera.yml is found beside raw.mkv) with the config the synthetic
     # camera ran with (the demo scene's: a real recording tracks exactly what its --config says)
-    demo = Path(__file__).resolve().parents[1] / "configs" / "demo.toml"
+    demo = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"
     replay = run_cli(
         ["-q", "replay", str(out / "raw.mkv"), "--config", str(demo), "--out", "out2", "--video-out", "replay.mkv"],
         tmp_path,

@@ -6,7 +6,7 @@ For every input the outcome is one of two: a typed error (:class:`ConfigError` /
 file, or a result that passes validation (finite numbers, sizes and ids in range, and usable by
 the next stage). Never another exception, a hang, or silent nonsense.
 
-Budgets: see tests/fuzzing.py (CI: the counts below; ``HYPOTHESIS_PROFILE=long``: 20x).
+Budgets: see tests/helpers.py (CI: the counts below; ``HYPOTHESIS_PROFILE=long``: 20x).
 """
 
 from __future__ import annotations
@@ -44,10 +44,9 @@ from ar_anchor.config import (
 )
 from ar_anchor.errors import CameraError, ConfigError, InputError
 from ar_anchor.render.models import MAX_TRIANGLES, Model, load_mesh
+from tests.helpers import fuzz_settings, outcome, time_limit
 
-from .fuzzing import fuzz_settings, outcome, time_limit
-
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DEFAULT_TOML = REPO / "configs" / "default.toml"
 SYNTHETIC_YAML = REPO / "configs" / "camera_synthetic.yml"
 PER_CALL_S = 20.0  # a parser taking longer than this on a file of a few kB is hung

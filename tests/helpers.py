@@ -1,4 +1,5 @@
-"""Shared helpers of the fuzz / fault-injection suite (tests/test_fuzz_*.py, test_media_faults.py).
+"""The test suite's shared helpers: the fuzz / fault-injection harness (property budgets, in-process
+CLI runs, time limits), CLI subprocess checks, and geometry fixtures used by several test modules.
 
 Example budgets: every property test declares its CI budget with :func:`fuzz_settings`; under
 ``HYPOTHESIS_PROFILE=long`` the budget is multiplied by ``FUZZ_SCALE`` (default 20), which is the
@@ -13,10 +14,21 @@ import logging
 import math
 import os
 import signal
+import subprocess
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
+import cv2
+import numpy as np
+import pytest
 from hypothesis import settings
+
+from ar_anchor.camera import CameraModel
+from ar_anchor.geometry import Pose, look_at, matrix_from_rvec
+from ar_anchor.sources.synthetic import SyntheticSource
+from ar_anchor.synthetic import PlacedMarker, SyntheticScene
 
 PROFILE = os.environ.get("HYPOTHESIS_PROFILE", "ci")
 SCALE = int(os.environ.get("FUZZ_SCALE", "20")) if PROFILE == "long" else 1
@@ -118,3 +130,91 @@ def outcome(text: str) -> None:
         event(f"outcome: {text}")
     except InvalidArgument:
         pass
+
+
+# ============================================================================ CLI subprocesses
+
+TIMEOUT_S = 60
+
+
+RERUN = Path(sys.executable).with_name("rerun")
+
+
+POSES_HEADER = (
+    "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
+    "raw_rvec_x,raw_rvec_y,raw_rvec_z,raw_tvec_x,raw_tvec_y,raw_tvec_z,reproj_px,ambiguity"
+)
+
+
+def cli(args: list[str]) -> list[str]:
+    return [sys.executable, "-m", "ar_anchor", *args]
+
+
+def describe(result: subprocess.CompletedProcess[str]) -> str:
+    return f"exit {result.returncode}\nstdout: {result.stdout!r}\nstderr: {result.stderr!r}"
+
+
+def assert_no_traceback(result: subprocess.CompletedProcess[str]) -> None:
+    assert "Traceback" not in result.stderr and "Traceback" not in result.stdout, describe(result)
+    assert "internal error" not in result.stderr, describe(result)
+
+
+def verify_rrd(path: Path) -> None:
+    assert path.is_file() and path.stat().st_size > 0, f"{path} missing or empty"
+    if not RERUN.exists():
+        pytest.skip(f"{RERUN} not found: {path} not verified")
+    result = subprocess.run(
+        [str(RERUN), "rrd", "verify", str(path)], capture_output=True, text=True, timeout=TIMEOUT_S, check=False
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def count_decoded_frames(path: Path) -> int:
+    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    assert capture.isOpened(), f"{path}: cannot be opened"
+    count = 0
+    try:
+        while capture.read()[0]:
+            count += 1
+    finally:
+        capture.release()
+    return count
+
+
+# ============================================================================ geometry fixtures
+
+
+def mirrored(pose: Pose) -> Pose:
+    """The other IPPE solution of a square: its normal mirrored through the line of sight."""
+    sight = pose.tvec / np.linalg.norm(pose.tvec)
+    normal = pose.rotation[:, 2]
+    axis = np.cross(normal, sight if normal @ sight > 0 else -sight)
+    angle = 2.0 * math.asin(min(np.linalg.norm(axis), 1.0))
+    turn = matrix_from_rvec(axis / np.linalg.norm(axis) * angle)
+    return Pose.from_matrix(turn @ pose.rotation, pose.tvec)
+
+
+LENGTH = 0.05
+
+
+def random_view(rng: np.random.Generator, near: float, far: float, tilt_deg: float = 50.0) -> Pose:
+    """camera_from_world looking at the origin from a random direction, with a random roll."""
+    distance = rng.uniform(near, far)
+    az, el = np.radians(rng.uniform(-tilt_deg, tilt_deg, 2))
+    eye = distance * np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+    look = np.array([*rng.uniform(-0.03, 0.03, 2), 0.0])
+    roll = Pose(np.array([0.0, 0.0, rng.uniform(-math.pi, math.pi)]), np.zeros(3))
+    return roll.compose(look_at(eye, look))
+
+
+def distorted_camera() -> CameraModel:
+    k = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
+    return CameraModel(k, np.array([-0.32, 0.12, 0.0005, -0.0004, 0.0]), 640, 480)
+
+
+def corner_view(camera: CameraModel) -> tuple[SyntheticSource, Pose]:
+    """A 20 cm marker placed in the image's top-left corner region, where barrel distortion bends its sides."""
+    scene = SyntheticScene(camera=camera, markers=(PlacedMarker(5, 0.2, Pose.identity()),), frames=1, seed=1)
+    # the camera looks at a point right of and below the marker, so the marker lands top-left
+    camera_from_world = look_at((0.22, -0.16, 0.6), (0.22, -0.16, 0.0))
+    return SyntheticSource(scene), camera_from_world

@@ -31,8 +31,7 @@ from ar_anchor.camera import CameraModel
 from ar_anchor.geometry import Pose
 from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
-
-from .fuzzing import CliResult, assert_clean_exit, error_lines, run_main
+from tests.helpers import CliResult, assert_clean_exit, error_lines, run_main
 
 FRAMES = 30
 SIZE = (320, 240)

@@ -14,7 +14,7 @@ parsing and validation in front of them.
 Bugs the fuzzing found are pinned by the named tests at the end (extreme ``demo --near/--far/--blur/
 --noise``, a malformed ``live --connect``, ``bench --out`` a file, a non-UTF-8 ``--video-out``).
 
-Budgets: tests/fuzzing.py (CI: the counts below; ``HYPOTHESIS_PROFILE=long``: 20x).
+Budgets: tests/helpers.py (CI: the counts below; ``HYPOTHESIS_PROFILE=long``: 20x).
 """
 
 from __future__ import annotations
@@ -35,10 +35,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from ar_anchor.camera import CameraModel
+from tests.helpers import CliResult, assert_clean_exit, error_lines, fuzz_settings, outcome, run_main
 
-from .fuzzing import CliResult, assert_clean_exit, error_lines, fuzz_settings, outcome, run_main
-
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 POSES_HEADER = (
     "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
     "raw_rvec_x,raw_rvec_y,raw_rvec_z,raw_tvec_x,raw_tvec_y,raw_tvec_z,reproj_px,ambiguity"

@@ -36,7 +36,7 @@ from ar_anchor.tools.markers import (
     write_sheet,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PDF_DPI = 600
 PX_PER_MM = PDF_DPI / 25.4
 TOL_MM = 0.1

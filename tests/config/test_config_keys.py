@@ -26,7 +26,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - exercised on 3.10 only
     import tomli as tomllib
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DEFAULT_TOML = REPO / "configs" / "default.toml"
 DEMO_TOML = REPO / "configs" / "demo.toml"
 REGENERATE = "stale: run `python -m ar_anchor.config.document configs`"

@@ -24,7 +24,7 @@ from ar_anchor.track.corners import refine_corners_by_edges
 from ar_anchor.track.detection import MarkerDetections
 from ar_anchor.track.tracker import FrameResult, TargetResult, Tracker
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DARK = (30, 30, 30)
 
 

@@ -8,7 +8,7 @@ board none of whose markers was seen) or poses that pass validation: finite rvec
 every target point in front of the camera (z > 0), the printed side facing the camera, and a
 finite reprojection error within the limit that is the real one. Never an exception or a hang.
 
-Budgets: tests/fuzzing.py (CI: the counts below; ``HYPOTHESIS_PROFILE=long``: 20x).
+Budgets: tests/helpers.py (CI: the counts below; ``HYPOTHESIS_PROFILE=long``: 20x).
 """
 
 from __future__ import annotations
@@ -33,8 +33,7 @@ from ar_anchor.track.pose import (
     reprojection_rms,
     solve_marker,
 )
-
-from .fuzzing import fuzz_settings, outcome, time_limit
+from tests.helpers import fuzz_settings, outcome, time_limit
 
 EPS = 1e-9
 PER_CALL_S = 20.0

@@ -24,7 +24,7 @@ from ar_anchor.config import (
 )
 from ar_anchor.errors import CameraError, ConfigError, InputError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DEFAULT_TOML = REPO / "configs" / "default.toml"
 SYNTHETIC_YAML = REPO / "configs" / "camera_synthetic.yml"
 

@@ -28,7 +28,7 @@ RIGID_SHEET = (
     (
         Path(os.environ["AR_ANCHOR_REALDATA"]).parent
         if os.environ.get("AR_ANCHOR_REALDATA")
-        else Path(__file__).resolve().parents[1].parent / "shared"
+        else Path(__file__).resolve().parents[2].parent / "shared"
     )
     / "tools"
     / "rigid_sheet.py"

@@ -130,7 +130,7 @@ def test_region_dataclass_defaults_to_full_scale():
 
 
 def test_region_corners_match_full_frame_corners_through_lens_distortion():
-    from tests.test_corners import corner_view, distorted_camera
+    from tests.helpers import corner_view, distorted_camera
 
     camera = distorted_camera()
     source, camera_from_world = corner_view(camera)

@@ -31,10 +31,9 @@ from ar_anchor.camera import CameraModel
 from ar_anchor.config import load_config
 from ar_anchor.errors import CameraError, ConfigError
 from ar_anchor.render.models import MESH_SUFFIXES, load_mesh
+from tests.helpers import assert_clean_exit, run_main
 
-from .fuzzing import assert_clean_exit, run_main
-
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PACKAGE = REPO / "ar_anchor"
 MODULES = sorted(PACKAGE.rglob("*.py"))
 

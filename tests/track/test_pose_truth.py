@@ -18,8 +18,7 @@ from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 from ar_anchor.track.filtering import TargetTrack
 from ar_anchor.track.pose import MarkerPose, PoseHypothesis
 from ar_anchor.track.tracker import Tracker
-
-from .test_filtering import mirrored
+from tests.helpers import mirrored
 
 CAMERA = CameraModel.from_fov(1280, 720, 1000.0)
 DT_NS = 33_333_333

@@ -15,8 +15,7 @@ from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedMarker, SyntheticScene
 from ar_anchor.track.detection import Detector
 from ar_anchor.track.pose import MarkerPose, PoseFailure, check_pose, reprojection_rms, solve_marker
-
-from .test_synthetic import LENGTH, random_view
+from tests.helpers import LENGTH, random_view
 
 MAX_REPROJ = 3.0
 
