@@ -6,7 +6,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Protocol, runtime_checkable
+from typing import Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
@@ -14,7 +14,7 @@ from ..camera import CameraModel
 from ..errors import SourceError
 from ..geometry import Pose
 
-__all__ = ["Frame", "FrameSource", "SourceError", "SourceInfo"]
+__all__ = ["ClosingSource", "Frame", "FrameSource", "SourceError", "SourceInfo"]
 
 
 @dataclass(frozen=True)
@@ -106,3 +106,22 @@ class FrameSource(Protocol):
     ) -> None: ...
 
     def close(self) -> None: ...
+
+
+_Source = TypeVar("_Source", bound="ClosingSource")
+
+
+class ClosingSource:
+    """The context-manager side of a :class:`FrameSource`, shared by the sources: ``with`` gives the
+    source itself and closes it on the way out (``close`` is the source's own)."""
+
+    def __enter__(self: _Source) -> _Source:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:  # pragma: no cover - overridden
+        pass

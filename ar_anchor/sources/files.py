@@ -20,14 +20,13 @@ import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
-from types import TracebackType
 
 import cv2
 import numpy as np
 
 from ..camera import CameraModel, opencv_path_problem
 from ..errors import SourceError
-from .base import Frame, SourceInfo
+from .base import ClosingSource, Frame, SourceInfo
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -105,21 +104,10 @@ def read_timestamps_csv(path: Path) -> list[tuple[int, int]]:
         raise SourceError(f"{path}: unreadable timestamp file ({err})") from None
 
 
-class _FileSourceBase:
-    """Context-manager plumbing shared by the file sources."""
+class _FileSourceBase(ClosingSource):
+    """What the file sources share: the context manager, and no calibration of their own."""
 
     camera: CameraModel | None = None
-
-    def __enter__(self):  # noqa: ANN204 - returns the concrete source
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
-    def close(self) -> None:  # pragma: no cover - overridden
-        pass
 
 
 class VideoFileSource(_FileSourceBase):

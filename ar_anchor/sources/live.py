@@ -18,7 +18,6 @@ import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
 from typing import Protocol
 
 import cv2
@@ -27,7 +26,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..errors import SourceError
 from ..geometry import Pose
-from .base import Frame, SourceInfo
+from .base import ClosingSource, Frame, SourceInfo
 from .files import to_bgr8
 from .synthetic import SyntheticScene, SyntheticSource
 
@@ -94,7 +93,7 @@ class LiveStats:
             }
 
 
-class LiveSource:
+class LiveSource(ClosingSource):
     """A :class:`~ar_anchor.sources.base.FrameSource` fed by a capture thread (``info.live``: the run
     loop must not make it wait; it hands over the newest frame itself, so it is not prefetched).
 
@@ -145,11 +144,6 @@ class LiveSource:
     def __enter__(self) -> LiveSource:
         self.start()
         return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
     def start(self) -> None:
         if self._thread is None:

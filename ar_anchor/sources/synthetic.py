@@ -10,7 +10,6 @@ dropouts (``hidden``), and the H.264 round trip, which is sequential over the cl
 from __future__ import annotations
 
 from collections.abc import Iterator
-from types import TracebackType
 
 import numpy as np
 
@@ -18,12 +17,12 @@ from ..camera import CameraModel
 from ..geometry import Pose
 from ..synthetic.render import H264RoundTrip, Renderer
 from ..synthetic.scene import SyntheticScene
-from .base import Frame, SourceInfo
+from .base import ClosingSource, Frame, SourceInfo
 
 __all__ = ["SyntheticSource"]
 
 
-class SyntheticSource:
+class SyntheticSource(ClosingSource):
     """Renders :class:`SyntheticScene` frames with per-frame ground truth (a :class:`FrameSource`)."""
 
     def __init__(self, scene: SyntheticScene) -> None:
@@ -47,14 +46,6 @@ class SyntheticSource:
     @property
     def info(self) -> SourceInfo:
         return SourceInfo(fps=self.scene.fps, frame_count=self.scene.frames)
-
-    def __enter__(self) -> SyntheticSource:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
     def close(self) -> None:
         self._closed = True
