@@ -16,6 +16,7 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from ..errors import ConfigError
 from ..targets import TargetId, target_pattern_problem
@@ -53,6 +54,12 @@ def each_in(lo: float, hi: float) -> Check:
     """Every value of a vector finite and in [lo, hi] (bounds first: no float() of a huge integer)."""
     text = f"values must be finite and in [{lo:g}, {hi:g}]"
     return Check(text, lambda values, _limit: None if all(lo <= v <= hi and math.isfinite(v) for v in values) else text)
+
+
+def vector_key(default: tuple[float, ...], doc: str, check: Check) -> Any:
+    """A key of ``len(default)`` numbers (:func:`~ar_anchor.config.keys.key` with shape ``vector``), each
+    of the default's type."""
+    return key(default, doc, check, kind=type(default[0]), shape="vector", size=len(default))
 
 
 @dataclass(frozen=True)
@@ -270,29 +277,16 @@ class OverlayConfig:
         printable,
     )
     scale: float = key(1.0, "mesh: file units -> metres, used when size_m is 0", positive)
-    offset_m: tuple[float, float, float] = key(
+    offset_m: tuple[float, float, float] = vector_key(
         (0.0, 0.0, 0.0),
         "in the target's anchor frame: its centre, x right, y up, z out of the marker or board",
         each_in(-100.0, 100.0),
-        kind=float,
-        shape="vector",
-        size=3,
     )
-    rotation_deg: tuple[float, float, float] = key(
-        (0.0, 0.0, 0.0),
-        "x, y, z Euler angles in that frame (extrinsic, in this order)",
-        each_in(-360.0, 360.0),
-        kind=float,
-        shape="vector",
-        size=3,
+    rotation_deg: tuple[float, float, float] = vector_key(
+        (0.0, 0.0, 0.0), "x, y, z Euler angles in that frame (extrinsic, in this order)", each_in(-360.0, 360.0)
     )
-    colour: tuple[int, int, int] = key(
-        (70, 140, 240),
-        "RGB (a mesh's own colours are kept unless colour is given)",
-        each_in(0.0, 255.0),
-        kind=int,
-        shape="vector",
-        size=3,
+    colour: tuple[int, int, int] = vector_key(
+        (70, 140, 240), "RGB (a mesh's own colours are kept unless colour is given)", each_in(0.0, 255.0)
     )
     colour_set: bool = False  # colour was given explicitly (not a key: the reader sets it)
     opacity: float = key(
