@@ -47,6 +47,7 @@ def _finite_positive(stats: dict) -> bool:
     return all(math.isfinite(stats[k]) and stats[k] > 0 for k in ("median", "p95", "mean"))
 
 
+@pytest.mark.slow
 def test_structure_and_files(tiny):
     out, results, calls, threads = tiny
     assert (out / "speed.md").is_file() and (out / "speed.json").is_file()

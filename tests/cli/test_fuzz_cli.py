@@ -37,6 +37,8 @@ from hypothesis import strategies as st
 from ar_anchor.camera import CameraModel
 from tests.helpers import CliResult, assert_clean_exit, error_lines, fuzz_settings, outcome, run_main
 
+pytestmark = pytest.mark.slow  # fuzzing and end-to-end CLI runs: the full suite, not the fast tier
+
 REPO = Path(__file__).resolve().parents[2]
 POSES_HEADER = (
     "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"

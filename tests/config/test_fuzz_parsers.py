@@ -46,6 +46,8 @@ from ar_anchor.errors import CameraError, ConfigError, InputError
 from ar_anchor.render.models import MAX_TRIANGLES, Model, load_mesh
 from tests.helpers import fuzz_settings, outcome, time_limit
 
+pytestmark = pytest.mark.slow  # fuzzing and end-to-end CLI runs: the full suite, not the fast tier
+
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_TOML = REPO / "configs" / "default.toml"
 SYNTHETIC_YAML = REPO / "configs" / "camera_synthetic.yml"

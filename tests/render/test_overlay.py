@@ -78,6 +78,7 @@ def tracked_cube_view(camera: CameraModel, camera_from_world: Pose, length: floa
         ("distorted", (0.16, -0.12, 0.3), (0.2, -0.06, 0.0)),  # the cube lands near the image's left edge
     ],
 )
+@pytest.mark.slow
 def test_cube_corners_land_on_the_true_projection(lens, eye, look):
     # given a marker tracked in synthetic frames with ground truth (and, once, a strong barrel lens)
     camera = CameraModel.default_synthetic() if lens == "pinhole" else distorted_camera()
@@ -281,6 +282,7 @@ def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_demo_video_out_has_one_frame_per_processed_frame(tmp_path):
     result = run_cli(["-q", "demo", "--frames", "12", "--out", "run", "--video-out", "demo.mp4"], tmp_path)
     assert result.returncode == 0, result.stderr
@@ -292,6 +294,7 @@ def test_demo_video_out_has_one_frame_per_processed_frame(tmp_path):
     assert '"frames": 12' in (tmp_path / "run" / "summary.json").read_text()
 
 
+@pytest.mark.slow
 def test_a_missing_mesh_file_stops_the_run_before_any_output(tmp_path):
     config = write_config(tmp_path, 'kind = "mesh"\npath = "nowhere.glb"\n')
     result = run_cli(["demo", "--frames", "3", "--config", str(config), "--out", "run"], tmp_path)
@@ -317,6 +320,7 @@ def test_an_opaque_model_hides_the_background_completely(camera):
     assert np.array_equal(white[inside > 0], black[inside > 0])
 
 
+@pytest.mark.slow
 def test_an_unsupported_video_extension_is_a_usage_error_before_any_output(tmp_path):
     result = run_cli(["demo", "--frames", "3", "--out", "run", "--video-out", "clip.gif"], tmp_path)
     assert result.returncode == 2
@@ -324,6 +328,7 @@ def test_an_unsupported_video_extension_is_a_usage_error_before_any_output(tmp_p
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_recording_holds_overlay_image_meshes_and_camera_trajectory(tmp_path):
     rerun = Path(sys.executable).with_name("rerun")
     if not rerun.exists():

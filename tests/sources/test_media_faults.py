@@ -33,6 +33,8 @@ from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 from tests.helpers import CliResult, assert_clean_exit, error_lines, run_main
 
+pytestmark = pytest.mark.slow  # fuzzing and end-to-end CLI runs: the full suite, not the fast tier
+
 FRAMES = 30
 SIZE = (320, 240)
 RERUN = Path(sys.executable).with_name("rerun")

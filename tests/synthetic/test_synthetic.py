@@ -167,6 +167,7 @@ def angular_speeds(trajectory: Trajectory, seconds: float, dt: float = 0.001) ->
     return steps / dt, poses
 
 
+@pytest.mark.slow
 def test_handheld_trajectory_is_smooth_and_turns_at_the_requested_peak_speed():
     # given a hand-held path with quick turns up to 150 deg/s, one every 1.5 s
     trajectory = Trajectory(kind="handheld", near_m=0.4, far_m=0.9, turn_peak_deg_s=150.0, turn_every_s=1.5, seed=3)

@@ -186,6 +186,7 @@ def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 # ======================================================================== round trip
 
 
+@pytest.mark.slow
 def test_round_trip_recovers_the_rendered_camera(views_dir):
     # given 18 rendered views of a camera with known intrinsics and distortion
     # when they are calibrated through the folder path the CLI uses

@@ -532,6 +532,7 @@ def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.slow
 def test_cli_success_and_usage_error(tmp_path: Path) -> None:
     ok = run_cli(["--board", "grid", "--cols", "2", "--rows", "2", "--size-mm", "40", "--gap-mm", "20"], tmp_path)
     assert ok.returncode == 0, ok.stderr

@@ -37,6 +37,7 @@ def load(out: Path, name: str) -> dict:
     return json.loads((out / f"{name}.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", STUDIES)
 def test_each_study_writes_figure_table_json_and_recording(quick_out, name):
     # then

@@ -45,6 +45,7 @@ def corner_errors(refinement: str, camera: CameraModel, frames) -> np.ndarray:
     return np.concatenate(errors)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("distance_m", [1.5, 3.0])
 def test_edge_corners_beat_opencv_subpix_on_far_markers(distance_m):
     # given a far 4 cm marker (about 40 and 20 px wide), rendered with noise and blur

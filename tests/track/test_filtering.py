@@ -220,6 +220,7 @@ def assert_honest_and_steady(result: dict) -> None:
     assert tracker["twitches"] == 0, result  # never snaps by more than 10 deg in place
 
 
+@pytest.mark.slow
 def test_far_static_marker_says_ambiguous_and_holds_steady():
     result = scenario_metrics(Scenario("far static", 0.04, 2.6, "static", tilt_deg=15, frames=70))
     assert_honest_and_steady(result)
@@ -227,6 +228,7 @@ def test_far_static_marker_says_ambiguous_and_holds_steady():
     assert result["tracker"]["jitter_deg"] < result["raw"]["jitter_deg"] / 3
 
 
+@pytest.mark.slow
 def test_nearly_fronto_parallel_wobbling_marker():
     result = scenario_metrics(Scenario("wobble", 0.05, 0.5, "wobble", frames=70))
     assert_honest_and_steady(result)
@@ -234,6 +236,7 @@ def test_nearly_fronto_parallel_wobbling_marker():
     assert result["tracker"]["rot_median_deg"] < 2.0
 
 
+@pytest.mark.slow
 def test_orbiting_camera_commits_fast_and_follows_without_lag():
     result = scenario_metrics(Scenario("orbit", 0.06, 0.8, "orbit", frames=70))
     assert_honest_and_steady(result)
@@ -244,6 +247,7 @@ def test_orbiting_camera_commits_fast_and_follows_without_lag():
     assert tracker["rot_median_deg"] <= raw["rot_median_deg"] + 0.1
 
 
+@pytest.mark.slow
 def test_dropout_is_reacquired_without_a_flip_and_never_published_blind():
     from ar_anchor.sources.synthetic import SyntheticSource
     from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
@@ -279,6 +283,7 @@ def test_dropout_is_reacquired_without_a_flip_and_never_published_blind():
     assert max(errors["tracked"] + errors["ambiguous"]) < 10.0
 
 
+@pytest.mark.slow
 def test_short_dropout_of_a_still_marker_is_predicted():
     # given a static camera that loses the marker for 3 frames (0.1 s, within predict_s)
     result = scenario_metrics(
@@ -289,6 +294,7 @@ def test_short_dropout_of_a_still_marker_is_predicted():
     assert result["tracker"]["predicted_pct"] == pytest.approx(100 * 3 / 70, abs=0.1)
 
 
+@pytest.mark.slow
 def test_static_near_marker_jitter_is_far_below_raw():
     result = scenario_metrics(Scenario("static near", 0.08, 0.6, "static", tilt_deg=25, frames=70))
     assert_honest_and_steady(result)

@@ -35,6 +35,8 @@ from ar_anchor.track.pose import (
 )
 from tests.helpers import fuzz_settings, outcome, time_limit
 
+pytestmark = pytest.mark.slow  # fuzzing and end-to-end CLI runs: the full suite, not the fast tier
+
 EPS = 1e-9
 PER_CALL_S = 20.0
 

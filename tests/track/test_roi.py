@@ -80,6 +80,7 @@ def test_plan_regions_follows_motion_merges_overlaps_and_clips():
     assert 0.15 < shrunk.scale < 0.25
 
 
+@pytest.mark.slow
 def test_roi_tracking_is_as_accurate_as_full_frame_and_searches_less():
     camera, frames = orbit_frames(frames=40, markers=((0, 0.05, (0.0, 0.0)), (1, 0.05, (0.12, 0.05))))
     errors, full_searches = {}, {}
@@ -172,6 +173,7 @@ def test_region_corners_of_far_small_markers_match_full_frame_corners():
         np.testing.assert_allclose(found.corners, full.corners, atol=0.02, err_msg=f"at {distance} m")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("full_every", [5, 15])
 def test_a_newly_appearing_marker_is_found_within_the_full_frame_period(full_every):
     # given a tracker following marker 0 with ROI tracking (searching around it only), and then marker 1
