@@ -22,6 +22,7 @@ from ..config import BoardConfig, TrackerConfig
 from ..geometry import Pose
 from ..sources.synthetic import SyntheticSource
 from ..synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
+from ..targets import TargetId
 from ..track.tracker import Tracker
 from .report import fmt
 from .stability.metrics import series_metrics
@@ -29,12 +30,13 @@ from .stability.metrics import series_metrics
 __all__ = ["BOARD_DISTANCES_M", "run_board_comparison", "write_board_report"]
 
 BOARD_DISTANCES_M = (2.5, 3.0, 3.5, 4.0)
+MARKER, BOARD = TargetId.marker(0), TargetId.board("grid2x2")  # the lone marker and the board of the scene
 
 
 def _board_vs_marker_scene(camera: CameraModel, distance_m: float, tilt_deg: float, frames: int) -> SyntheticScene:
     """A lone 4 cm marker (id 0) beside a 2x2 grid board of the same 4 cm markers (ids 10-13, 4 cm
     gaps: a 12 cm board), both seen by one static camera: the same frames for both."""
-    board = BoardConfig(name="grid2x2", cols=2, rows=2, marker_length_m=0.04, separation_m=0.04, first_id=10)
+    board = BoardConfig(name=BOARD.name, cols=2, rows=2, marker_length_m=0.04, separation_m=0.04, first_id=10)
     flip_yz = np.diag([1.0, -1.0, -1.0])  # board frame: y down, z into the wall
     return SyntheticScene(
         camera=camera,
@@ -62,7 +64,7 @@ def run_board_comparison(
     )
     tracker = Tracker(config, camera)
     series: dict[str, dict[str, list[Pose | None]]] = {
-        name: {"raw": [], "output": [], "truth": []} for name in ("marker:0", "board:grid2x2")
+        name: {"raw": [], "output": [], "truth": []} for name in (MARKER, BOARD)
     }
     states: list[str] = []
     for frame in SyntheticSource(scene):
@@ -72,9 +74,9 @@ def run_board_comparison(
             data["raw"].append(target.raw if target is not None else None)
             data["output"].append(target.pose if target is not None else None)
             data["truth"].append((frame.truth or {}).get(name))
-        board = result.targets.get("board:grid2x2")
+        board = result.targets.get(BOARD)
         states.append(board.state if board is not None else "")
-    marker, board = series["marker:0"], series["board:grid2x2"]
+    marker, board = series[MARKER], series[BOARD]
     out = {
         "distance_m": distance_m,
         "tilt_deg": tilt_deg,

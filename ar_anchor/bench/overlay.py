@@ -19,6 +19,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import TrackerConfig
 from ..geometry import Pose
+from ..targets import TargetId, TrackState
 
 __all__ = ["OVERLAY_TRIANGLES", "run_overlay_benchmark", "write_overlay_report"]
 
@@ -54,7 +55,7 @@ def run_overlay_benchmark(frames: int = 60, progress: Callable[[int, int, str], 
             if progress is not None:
                 progress(i, len(cases), f"{kind} {triangles}")
             path = "" if kind == "cube" else str(_sphere_mesh_file(Path(tmp), triangles))
-            overlay = OverlayConfig(target="marker:0", kind=kind, path=path, size_m=0.1)
+            overlay = OverlayConfig(target=TargetId.marker(0), kind=kind, path=path, size_m=0.1)
             config = dataclasses.replace(TrackerConfig(), overlays=(overlay,))
             row: dict[str, Any] = {"model": kind, "triangles": 12 if kind == "cube" else None}
             for width, height, focal in sizes:
@@ -69,8 +70,8 @@ def run_overlay_benchmark(frames: int = 60, progress: Callable[[int, int, str], 
                     pose = Pose(
                         np.array([math.pi + 0.4 * math.cos(angle), 0.4 * math.sin(angle), 0.0]), np.array([0, 0, 0.5])
                     )
-                    target = TargetResult("marker:0", "tracked", pose, pose, 0.1, 3.0, 0.05)
-                    result = FrameResult(k, 0, MarkerDetections.empty(), {"marker:0": target}, camera=camera)
+                    target = TargetResult(TargetId.marker(0), TrackState.TRACKED, pose, pose, 0.1, 3.0, 0.05)
+                    result = FrameResult(k, 0, MarkerDetections.empty(), {target.target: target}, camera=camera)
                     start = time.perf_counter()
                     renderer.annotate(image, result)
                     times.append((time.perf_counter() - start) * 1e3)

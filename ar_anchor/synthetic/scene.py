@@ -39,6 +39,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import BoardConfig, TrackerConfig, dictionary_id
 from ..geometry import Pose, marker_corners_in_marker
+from ..targets import TargetId
 from .trajectory import Trajectory
 
 __all__ = [
@@ -83,8 +84,8 @@ class PlacedMarker:
     world_from_target: Pose
 
     @property
-    def target(self) -> str:
-        return f"marker:{self.marker_id}"
+    def target(self) -> TargetId:
+        return TargetId.marker(self.marker_id)
 
 
 @dataclass(frozen=True)
@@ -318,7 +319,7 @@ class SyntheticScene:
             for marker_id, board_from_marker in board_marker_poses(placed.board).items():
                 pose = camera_from_board.compose(board_from_marker)
                 if in_view(pose, placed.board.marker_length_m):
-                    truth[f"marker:{marker_id}"] = pose
+                    truth[TargetId.marker(marker_id)] = pose
                     any_seen = True
             if any_seen:
                 truth[placed.target] = camera_from_board

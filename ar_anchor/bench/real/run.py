@@ -17,6 +17,7 @@ import numpy as np
 from ...boards import Layout
 from ...camera import CameraModel
 from ...config import TrackerConfig, dictionary_id
+from ...targets import TargetId
 from .scoring import PoseTable, score_against_layout, score_rigid_sheet
 
 __all__ = [
@@ -58,7 +59,7 @@ class PlainOpenCV:
             _, rvec, tvec = cv2.solvePnP(
                 self.object_points, c.reshape(-1, 2), self.camera_matrix, self.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )
-            out[f"marker:{int(marker_id)}"] = (rvec.ravel().astype(np.float64), tvec.ravel().astype(np.float64))
+            out[TargetId.marker(int(marker_id))] = (rvec.ravel().astype(np.float64), tvec.ravel().astype(np.float64))
         return out
 
 
@@ -158,9 +159,10 @@ def run_real(
 def _ids_by_frame(poses: PoseTable) -> dict[int, set[int]]:
     out: dict[int, set[int]] = defaultdict(set)
     for target, frames in poses.items():
-        if target.startswith("marker:"):
+        marker_id = TargetId.parse(target).marker_id
+        if marker_id is not None:
             for f in frames:
-                out[f].add(int(target.split(":")[1]))
+                out[f].add(marker_id)
     return out
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from ...boards import Layout
 from ...geometry import marker_corners_in_marker
+from ...targets import TargetId
 from ..report import FLIP_DEG
 
 __all__ = [
@@ -50,7 +51,7 @@ def _rms(values: list[float]) -> float:
 
 def _markers(poses: Mapping[str, Any]) -> list[str]:
     """Marker targets in rigid_sheet.py's order (sorted as strings: the RMS sums in the same order)."""
-    return sorted(k for k in poses if k.startswith("marker:"))
+    return sorted(k for k in poses if TargetId.parse(k).kind == "marker")
 
 
 def _pairs(poses: PoseTable, min_common_frames: int) -> Iterable[tuple[str, str, list[np.ndarray]]]:
@@ -63,7 +64,7 @@ def _pairs(poses: PoseTable, min_common_frames: int) -> Iterable[tuple[str, str,
 
 
 def _marker_frames(poses: PoseTable) -> int:
-    return sum(len(v) for k, v in poses.items() if k.startswith("marker:"))
+    return sum(len(v) for k, v in poses.items() if TargetId.parse(k).kind == "marker")
 
 
 def score_rigid_sheet(
@@ -161,7 +162,7 @@ def score_against_layout(
     ratios: list[float] = []
     unknown = 0
     for a, b, relative in _pairs(poses, min_common_frames):
-        id_a, id_b = int(a.split(":")[1]), int(b.split(":")[1])
+        id_a, id_b = TargetId.parse(a).marker_id, TargetId.parse(b).marker_id
         if id_a not in board_from or id_b not in board_from:
             unknown += 1
             continue

@@ -18,6 +18,7 @@ from ...config import TrackerConfig, dictionary_id
 from ...geometry import Pose, pose_errors
 from ...sources.base import Frame
 from ...synthetic import SyntheticScene
+from ...targets import TargetId
 from ...track.tracker import Tracker
 from ..report import FLIP_DEG
 from .scenes import speed_config
@@ -96,7 +97,7 @@ class _OpenCVLoop:
                 if ok:
                     solved.append((marker_id, rvec, tvec))
         t2 = time.perf_counter()
-        poses = {f"marker:{i}": Pose(rvec.reshape(3), tvec.reshape(3)) for i, rvec, tvec in solved}
+        poses = {TargetId.marker(i): Pose(rvec.reshape(3), tvec.reshape(3)) for i, rvec, tvec in solved}
         return {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3}, poses, poses
 
 

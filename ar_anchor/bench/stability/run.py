@@ -12,6 +12,7 @@ from ...camera import CameraModel
 from ...config import TrackerConfig
 from ...geometry import Pose
 from ...sources.synthetic import SyntheticSource
+from ...targets import TargetId
 from ...track.detection import Detector
 from ...track.tracker import Tracker
 from .metrics import is_decisive
@@ -90,7 +91,7 @@ def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel)
     source = SyntheticSource(scenario.scene(camera, config.detector.dictionary))
     tracker = Tracker(scenario.tracker_config(config), camera)
     full_frame = Detector(tracker.config.detector)  # what full-frame detection finds, for the ROI count
-    names = [f"marker:{i}" for i in scenario.marker_ids]
+    names = [TargetId.marker(i) for i in scenario.marker_ids]
     run = ScenarioRun(scenario, {name: TargetSeries() for name in names})
     frames = iter(source)
     while True:

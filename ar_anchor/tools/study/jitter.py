@@ -22,6 +22,7 @@ from ...geometry import Pose, angle_between_deg, mean_rotation
 from ...sources.base import Frame
 from ...sources.synthetic import SyntheticSource
 from ...synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
+from ...targets import TargetId
 from .stats import Progress, finite
 
 # The tracker loads scipy and filterpy: it is imported where the study runs, so that `ar-anchor`'s
@@ -132,7 +133,7 @@ class JitterSetup:
         }
 
 
-JITTER_SERIES = (("marker", "marker:0"), ("board", "board:study"))
+JITTER_SERIES = (("marker", TargetId.marker(0)), ("board", TargetId.board("study")))
 PIPELINES = ("raw", "tracker")
 
 # the four series (target, pipeline) of the figure, the Markdown and the recording: colour, line, marker, label
@@ -224,7 +225,7 @@ def run_jitter(
                 target = result.targets.get(name)
                 series[short, "raw"].append(target.raw if target is not None else None)
                 series[short, "tracker"].append(target.pose if target is not None else None)
-            marker = result.targets.get("marker:0")
+            marker = result.targets.get(TargetId.marker(0))
             states.append(marker.state if marker is not None else "")
             hyps = marker.hypotheses if marker is not None else ()
             gaps.append(hyps[1].reproj_px - hyps[0].reproj_px if len(hyps) == 2 else math.nan)
@@ -253,8 +254,8 @@ def run_jitter(
 def _noise_free_margin(tracker: Tracker, clean: np.ndarray, truth: dict[str, Pose]) -> float | None:
     """On the noise-free view: how much better (px) the marker's IPPE solution nearer the truth reprojects
     than the other (negative: the wrong one wins even without noise; None: a single solution or none)."""
-    marker = tracker.process(Frame(clean, 0, 0, truth)).targets.get("marker:0")
-    true = truth.get("marker:0")
+    marker = tracker.process(Frame(clean, 0, 0, truth)).targets.get(TargetId.marker(0))
+    true = truth.get(TargetId.marker(0))
     if marker is None or true is None or len(marker.hypotheses) != 2:
         return None
     right, wrong = sorted(marker.hypotheses, key=lambda h: angle_between_deg(h.pose.rotation, true.rotation))
