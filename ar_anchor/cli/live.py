@@ -114,7 +114,7 @@ def _print_live_counts(stats: dict[str, Any]) -> None:
 
 def cmd_live(args: argparse.Namespace) -> int:
     from ..camera import CameraModel
-    from ..errors import CameraError
+    from ..errors import CameraError, SourceError
     from ..run.loop import run_session
     from ..run.options import RunOptions
     from ..sources.open import SYNTHETIC, DeviceSettings, open_source
@@ -130,7 +130,12 @@ def cmd_live(args: argparse.Namespace) -> int:
         reconnect_s=args.reconnect_s,
         stall_s=args.stall_s,
     )
-    source = open_source(args.device, live=True, fps=args.fps, device=device, scene=scene)
+    try:
+        source = open_source(args.device, live=True, fps=args.fps, device=device, scene=scene)
+    except SourceError as err:  # the library names the device; the user typed it as --device
+        if not str(err).startswith(str(args.device)):
+            raise
+        raise SourceError(f"--device {err}") from None
     try:
         if args.camera is None and source.camera is None:
             raise CameraError("--camera FILE is required for a real camera (its calibration: see the README)")

@@ -276,14 +276,14 @@ class WebcamGrabber:
         if isinstance(device, str) and not device.isdigit() and not Path(device).exists():
             found = video_devices()
             listing = ", ".join(found) if found else "there are none on this machine"
-            raise SourceError(f"--device {device}: no such video device (video devices: {listing})")
+            raise SourceError(f"{device}: no such video device (video devices: {listing})")
         target: str | int = int(device) if isinstance(device, str) and device.isdigit() else device
         capture = cv2.VideoCapture(target, self.api)
         if not capture.isOpened():
             capture.release()
             found = video_devices()
             listing = ", ".join(found) if found else "there are none on this machine"
-            raise SourceError(f"--device {device}: cannot be opened as a V4L2 camera (video devices: {listing})")
+            raise SourceError(f"{device}: cannot be opened as a V4L2 camera (video devices: {listing})")
         width, height, fps, fourcc = self.requested
         if fourcc:
             capture.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc))

@@ -309,7 +309,7 @@ def test_close_stops_the_capture_thread():
 
 def test_missing_webcam_lists_the_devices(monkeypatch):
     monkeypatch.setattr("ar_anchor.sources.live.video_devices", lambda: ["/dev/video0", "/dev/video2"])
-    with pytest.raises(SourceError, match=r"--device /dev/video77: no such video device .*/dev/video0, /dev/video2"):
+    with pytest.raises(SourceError, match=r"^/dev/video77: no such video device .*/dev/video0, /dev/video2"):
         WebcamGrabber("/dev/video77").open()
     monkeypatch.setattr("ar_anchor.sources.live.video_devices", lambda: [])
     with pytest.raises(SourceError, match="there are none"):

@@ -89,10 +89,7 @@ def _gather_device(
 
     if grabber is None:
         grabber = WebcamGrabber(source.strip(), width=width, height=height, fps=fps)
-    try:
-        live = LiveSource(grabber, queue_size=1, reconnect_s=2.0, stall_s=5.0)  # type: ignore[arg-type]
-    except SourceError as err:  # the grabber names the live command's --device option: this one's is SOURCE
-        raise SourceError(str(err).removeprefix("--device ")) from None
+    live = LiveSource(grabber, queue_size=1, reconnect_s=2.0, stall_s=5.0)  # type: ignore[arg-type]
     size = live.resolution
     selector = OnlineSelector(size, max_views)
     rejections: list[Rejection] = []
