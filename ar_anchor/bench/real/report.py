@@ -49,9 +49,9 @@ def write_real_report(
 def _meta(inputs: RealInputs, config: TrackerConfig, run: RealRun, command: str) -> dict[str, Any]:
     return {
         "command": command,
-        "video": str(inputs.video),
-        "camera": str(inputs.camera),
-        "layout": str(inputs.layout) if inputs.layout is not None else None,
+        "video": _shown(inputs.video),
+        "camera": _shown(inputs.camera),
+        "layout": _shown(inputs.layout) if inputs.layout is not None else None,
         "dictionary": config.detector.dictionary,
         "marker_length_m": config.markers.length_m,
         "config": str(config.source) if getattr(config, "source", None) else "defaults",
@@ -204,3 +204,12 @@ def real_summary(results: Mapping[str, Any]) -> str:
         f"{det['plain_not_ours']} found by plain OpenCV only; tracker {fmt(speed['tracker_fps'], 1)} frames/s"
     )
     return "\n".join(lines)
+
+
+def _shown(path: Path) -> str:
+    """A path as the report shows it: relative to the working folder (a report names no machine's
+    absolute paths), unless it is on another drive."""
+    try:
+        return os.path.relpath(path)
+    except ValueError:
+        return str(path)
