@@ -101,3 +101,34 @@ def test_rerun_is_imported_only_by_viz():
 def test_every_module_says_what_lives_there():
     missing = [str(p.relative_to(PACKAGE)) for p in _modules() if not ast.get_docstring(ast.parse(p.read_text()))]
     assert not missing, f"modules without a docstring: {missing}"
+
+
+def _is_overload(node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    return any(
+        (isinstance(d, ast.Name) and d.id == "overload") or (isinstance(d, ast.Attribute) and d.attr == "overload")
+        for d in node.decorator_list
+    )
+
+
+def test_every_public_name_says_what_it_does():
+    """Public top-level functions and classes, and public methods of more than 3 statements, have docstrings."""
+    functions = (ast.FunctionDef, ast.AsyncFunctionDef)
+    missing = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        where = path.relative_to(PACKAGE)
+        for node in ast.parse(path.read_text()).body:
+            if not isinstance(node, (*functions, ast.ClassDef)) or node.name.startswith("_"):
+                continue
+            if not (isinstance(node, functions) and _is_overload(node)) and not ast.get_docstring(node):
+                missing.append(f"{where}:{node.lineno}:{node.name}")
+            if isinstance(node, ast.ClassDef):
+                missing += [
+                    f"{where}:{m.lineno}:{node.name}.{m.name}"
+                    for m in node.body
+                    if isinstance(m, functions)
+                    and not m.name.startswith("_")
+                    and not _is_overload(m)
+                    and len(m.body) > 3
+                    and not ast.get_docstring(m)
+                ]
+    assert not missing, f"public names without a docstring: {missing}"

@@ -83,6 +83,7 @@ def run_overlay_benchmark(frames: int = 60, progress: Callable[[int, int, str], 
 def write_overlay_report(
     out_dir: Path, frames: int = 60, progress=None, command: str = "ar-anchor bench overlay"
 ) -> list:
+    """Run :func:`run_overlay_benchmark`; write ``overlay.md`` and ``overlay.json`` to ``out_dir``; the rows."""
     start = time.perf_counter()
     rows = run_overlay_benchmark(frames, progress)
     wall = time.perf_counter() - start

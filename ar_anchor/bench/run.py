@@ -209,6 +209,7 @@ def run_run_benchmark(
 
 
 def run_markdown(results: dict[str, Any], command: str) -> str:
+    """``run.md`` from :func:`run_run_benchmark`'s results: replay fps, live latency per stage, memory, machine."""
     meta, replay, live = results["meta"], results["replay"], results["live"]
     lines = [
         "# End-to-end runs: replay throughput, live latency, memory",

@@ -55,6 +55,7 @@ def add_parser(commands: Any) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    """``ar-anchor bench NAME``: run one benchmark, write ``NAME.md`` and ``NAME.json`` to ``--out``; the exit code."""
     from ..bench.boards import write_board_report
     from ..bench.overlay import write_overlay_report
     from ..bench.stability import write_stability_report

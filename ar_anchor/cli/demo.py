@@ -56,6 +56,7 @@ def add_parser(commands: Any) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """``ar-anchor demo``: render the synthetic scene, track and record it; the exit code."""
     from ..camera import CameraModel
     from ..errors import SourceError
     from ..run.loop import run_session

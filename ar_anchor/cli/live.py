@@ -113,6 +113,7 @@ def _print_live_counts(stats: dict[str, Any]) -> None:
 
 
 def cmd_live(args: argparse.Namespace) -> int:
+    """``ar-anchor live``: track ``--device`` (a V4L2 camera or ``synthetic``) until it ends; the exit code."""
     from ..camera import CameraModel
     from ..errors import CameraError, SourceError
     from ..run.loop import run_session

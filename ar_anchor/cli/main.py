@@ -24,6 +24,7 @@ log = logging.getLogger("ar_anchor")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``ar-anchor`` parser: the common options and every command's subparser."""
     parser = argparse.ArgumentParser(
         prog="ar-anchor",
         description="Real-time fiducial-marker AR tracker (ArUco + IPPE + rerun).",
@@ -93,6 +94,7 @@ def _quiet_opencv(verbosity: int) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command in ``argv`` (default ``sys.argv``); errors become one line on stderr and an exit code."""
     _interrupt_on_sigterm()
     _steady_malloc()
     parser = build_parser()

@@ -11,6 +11,8 @@ from typing import Any
 
 
 def int_at_least(minimum: int):
+    """An argparse type: an integer ``>= minimum``."""
+
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -24,6 +26,8 @@ def int_at_least(minimum: int):
 
 
 def float_above(minimum: float, *, inclusive: bool):
+    """An argparse type: a finite number ``> minimum`` (``>=`` when ``inclusive``)."""
+
     def parse(text: str) -> float:
         try:
             value = float(text)
@@ -91,6 +95,7 @@ def add_common_options(parser: argparse.ArgumentParser, *, defaults: bool) -> No
 
 
 def add_command(commands: Any, name: str, help_text: str, description: str) -> argparse.ArgumentParser:
+    """A subparser ``name`` under ``commands``, with the common options (-v / -q)."""
     parser = commands.add_parser(name, help=help_text, description=description, allow_abbrev=False)
     add_common_options(parser, defaults=False)
     return parser
@@ -117,6 +122,7 @@ def add_run_options(parser: argparse.ArgumentParser, name: str, *, spawn: bool =
 
 
 def add_tracker_options(parser: argparse.ArgumentParser) -> None:
+    """--config, --dictionary, --marker-length and --no-filter: the tracker config and its overrides."""
     parser.add_argument(
         "--config",
         type=Path,
@@ -136,6 +142,7 @@ def add_tracker_options(parser: argparse.ArgumentParser) -> None:
 
 
 def default_out(name: str) -> Path:
+    """``recordings/<name>-<YYYYmmdd-HHMMSS>``: a run's output directory when --out is not given."""
     return Path("recordings") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
@@ -162,6 +169,7 @@ _OVERRIDE_FLAGS = {"dictionary": "--dictionary", "length_m": "--marker-length"}
 
 
 def camera_for_source(camera: Any, resolution: tuple[int, int], option: str) -> Any:
+    """``camera`` scaled to the source's ``resolution`` (width, height; pixels); errors name ``option``."""
     from ..errors import CameraError
 
     try:

@@ -63,6 +63,7 @@ def _replay_camera(args: argparse.Namespace) -> Path:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    """``ar-anchor replay SOURCE``: track a video file or images and record the run; the exit code."""
     from ..camera import CameraModel
     from ..run.loop import run_session
     from ..run.options import RunOptions

@@ -69,6 +69,7 @@ class LiveStatus:
 
 
 def finish(args: argparse.Namespace, outputs: Any) -> int:
+    """Print the run's summary (unless -q) and its output files; the exit code (0 when the run completed)."""
     if not args.quiet:
         print(format_summary(outputs.summary))
     files = "poses.csv, summary.json, recording.rrd" + (", raw.mkv" if outputs.raw_video else "")

@@ -77,18 +77,21 @@ def add_parsers(commands: Any) -> None:
 
 
 def cmd_study(args: argparse.Namespace) -> int:
+    """``ar-anchor study``: run the chosen PnP studies; the exit code."""
     from ..tools.study.command import run_study
 
     return run_study(args)
 
 
 def cmd_markers(args: argparse.Namespace) -> int:
+    """``ar-anchor markers``: write printable marker sheets; the exit code."""
     from ..tools.markers import run_markers
 
     return run_markers(args)
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    """``ar-anchor calibrate``: calibrate a camera from ChArUco views; the exit code."""
     from ..tools.calibrate import run_calibrate
 
     return run_calibrate(args)

@@ -257,6 +257,7 @@ FILES = {"default.toml": default_toml, "demo.toml": demo_toml}
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Write ``default.toml`` and ``demo.toml`` into ``folder`` (``--check``: write nothing, 1 if one is stale)."""
     parser = argparse.ArgumentParser(
         prog="python -m ar_anchor.config.document",
         description="Write default.toml and demo.toml from the key declarations.",

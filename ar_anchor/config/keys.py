@@ -88,10 +88,12 @@ printable = _rule("must not contain line breaks or control characters", lambda v
 
 
 def in_range(lo: float, hi: float) -> Check:
+    """A :class:`Check`: the value is in ``[lo, hi]``."""
     return _rule(f"must be in [{lo:g}, {hi:g}]", lambda v: lo <= v <= hi)
 
 
 def one_of(names: tuple[str, ...] | dict[str, Any]) -> Check:
+    """A :class:`Check`: the value is one of ``names``."""
     return _rule(f"must be one of {', '.join(names)}", lambda v: v in names)
 
 

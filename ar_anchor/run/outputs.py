@@ -82,6 +82,7 @@ class PosesCsvWriter:
         self.rows = 0
 
     def write(self, result: FrameResult) -> None:
+        """One row per target of ``result`` (filtered and raw ``camera_from_target``), then flush."""
         if self._file is None:
             raise OutputError(f"{self.path}: already closed")
         timestamp = f"{result.timestamp_ns * 1e-9:.9f}"
@@ -145,6 +146,7 @@ class RawVideoWriter:
         self.frames = 0
 
     def write(self, image: np.ndarray, index: int, timestamp_ns: int) -> None:
+        """Append ``image`` (the first one fixes the size) to the video, ``index, timestamp_ns`` to the CSV."""
         cv2 = self._cv2
         size = (image.shape[1], image.shape[0])
         if self._writer is None:

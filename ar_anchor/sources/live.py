@@ -73,6 +73,8 @@ class Grabber(Protocol):
 
 @dataclass
 class LiveStats:
+    """A live source's counters (frames captured, delivered, dropped; reconnects) and why it ended; thread-safe."""
+
     captured: int = 0
     delivered: int = 0
     dropped_queue: int = 0
@@ -151,6 +153,7 @@ class LiveSource(ClosingSource):
             self._thread.start()
 
     def close(self) -> None:
+        """Stop the capture thread (waits up to 5 s) and close the device."""
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
@@ -272,6 +275,7 @@ class WebcamGrabber:
         self.granted: dict[str, object] = {}
 
     def open(self) -> tuple[int, int]:
+        """Open the device with the requested settings, record what it ``granted``; its (width, height) in pixels."""
         device = self.device
         if isinstance(device, str) and not device.isdigit() and not Path(device).exists():
             found = video_devices()
@@ -325,6 +329,7 @@ class WebcamGrabber:
         return int(self.granted["width"]), int(self.granted["height"])
 
     def read(self) -> Captured | None:
+        """The next image (BGR8) stamped with ``time.monotonic_ns()``, or None when the device fails."""
         if self._capture is None:
             return None
         ok, image = self._capture.read()
@@ -365,6 +370,7 @@ class SyntheticGrabber:
         self._next_slot = 0
 
     def open(self) -> tuple[int, int]:
+        """Restart the clock, render the cached clip once (JPEG); the camera's (width, height) in pixels."""
         self._start_ns = None
         self._next_slot = 0
         if self.cached >= 2 and not self._clip:
@@ -391,6 +397,7 @@ class SyntheticGrabber:
         return phase if phase < frames else period - phase
 
     def read(self) -> Captured | None:
+        """Wait until the next frame is due, then return it with its truth; None once a non-looping clip is over."""
         now = time.monotonic_ns()
         if self._start_ns is None:
             self._start_ns = now

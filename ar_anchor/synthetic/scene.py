@@ -135,6 +135,7 @@ class Lighting:
             raise ValueError("lighting: step gains must be > 0")
 
     def gain_offset(self, t_s: float, seed: int) -> tuple[float, float]:
+        """``(gain, offset)`` at ``t_s`` seconds (offset in grey levels); ``seed`` sets the phases ``a``, ``b``."""
         a, b = np.random.default_rng([seed, 0x119]).uniform(0, 2 * np.pi, 2)
         gain = 1.0 + self.gain_drift * math.sin(2 * math.pi * t_s / self.period_s + a)
         for at_s, step_gain in self.steps:

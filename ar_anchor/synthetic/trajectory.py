@@ -75,6 +75,7 @@ class Trajectory:
                 raise ValueError("handheld: turn_every_s must be > 0")
 
     def camera_from_world(self, u: float) -> Pose:
+        """``camera_from_world`` at normalised time ``u`` in [0, 1] (``handheld``: at ``u * duration_s`` seconds)."""
         if self.kind == "handheld":
             return self.at_time(u * self.duration_s)
         az, el, roll, dist = self._angles(u)

@@ -82,6 +82,7 @@ class Scenario:
         return tuple(range(self.sheet)) if self.sheet else (0,)
 
     def trajectory(self) -> Trajectory:
+        """The camera path for ``motion`` (static, wobble, orbit, fast, sweep or handheld) at ``distance_m``."""
         seconds = self.frames / 30.0
         if self.motion == "static":
             return Trajectory(

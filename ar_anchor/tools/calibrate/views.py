@@ -113,6 +113,7 @@ class CharucoSpec:
         return max(MIN_CORNERS, math.ceil(MIN_CORNER_FRACTION * self.corner_count))
 
     def build(self) -> cv2.aruco.CharucoBoard:
+        """The OpenCV ChArUco board (lengths in metres)."""
         dictionary = cv2.aruco.getPredefinedDictionary(dictionary_id(self.dictionary))
         board = cv2.aruco.CharucoBoard((self.cols, self.rows), self.square_m, self.marker_m, dictionary)
         board.setLegacyPattern(self.legacy)
@@ -234,6 +235,7 @@ class ViewDetector:
         self.markers_seen = 0  # frames in which markers of the dictionary were found
 
     def detect(self, image: np.ndarray, name: str, frame: int) -> View | Rejection:
+        """The board's view in ``image``, or why it is rejected (no board, too few corners, corners on one line)."""
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         corners, ids, _marker_corners, marker_ids = self.detector.detectBoard(grey)
         if marker_ids is not None and len(marker_ids):

@@ -109,6 +109,7 @@ class MarkerSheet:
 
     @classmethod
     def single(cls, dictionary: str, ids: Iterable[int] | str, size_mm: float, *, paper: str = "a4") -> MarkerSheet:
+        """One marker per id (``ids``: a list or text such as ``0-3,7``), ``size_mm`` across."""
         dictionary = canonical_dictionary(dictionary)
         ids = parse_ids(ids) if isinstance(ids, str) else tuple(sorted(int(i) for i in ids))
         if not ids:
@@ -132,6 +133,7 @@ class MarkerSheet:
         name: str = "grid",
         paper: str = "a4",
     ) -> MarkerSheet:
+        """A ``cols`` x ``rows`` grid board of ``size_mm`` markers ``gap_mm`` apart, ids from ``first_id``."""
         dictionary = canonical_dictionary(dictionary)
         _check_count("--cols", cols, 1)
         _check_count("--rows", rows, 1)
@@ -164,6 +166,7 @@ class MarkerSheet:
         name: str = "charuco",
         paper: str = "a4",
     ) -> MarkerSheet:
+        """A ``cols`` x ``rows`` ChArUco board: ``square_mm`` squares, ``marker_mm`` markers, ids from ``first_id``."""
         dictionary = canonical_dictionary(dictionary)
         _check_count("--cols", cols, 2)
         _check_count("--rows", rows, 2)

@@ -24,10 +24,12 @@ __all__ = [
 
 
 def so3_exp(vector: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) -> rotation matrix (3, 3)."""
     return matrix_from_rvec(vector)
 
 
 def so3_log(rotation: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) -> rotation vector (3,)."""
     return rvec_from_matrix(rotation)
 
 
@@ -45,6 +47,7 @@ def cv_process_noise(dt: float, accel_sigma: float) -> np.ndarray:
 
 
 def cv_transition(dt: float) -> np.ndarray:
+    """Transition matrix (6, 6) of a 3D constant-velocity state [x, v] over ``dt`` seconds."""
     transition = np.eye(6)
     transition[_POSITION, _VELOCITY] = dt
     return transition
@@ -117,6 +120,7 @@ class TwoModeCV:
         self._dt = dt
 
     def predict(self, dt: float) -> None:
+        """IMM predict over ``dt`` seconds: mix the two models, then propagate each."""
         self._models(dt)
         # mixing: model j starts from the mixture of both models, weighed by P(was i | is j)
         cbar = self.mu @ self.M
@@ -129,6 +133,7 @@ class TwoModeCV:
         self._combine()
 
     def update(self, z: np.ndarray, cov: np.ndarray) -> None:
+        """IMM update with measurement ``z`` (3,) of covariance ``cov`` (3, 3): update each model, reweigh the modes."""
         z = np.asarray(z, np.float64).reshape(3)
         cov = np.asarray(cov, np.float64)
         rows = self._H_ROWS
@@ -190,6 +195,7 @@ class RotationFilter:
     def reset(
         self, rotation: np.ndarray, rotation_cov: np.ndarray, omega: np.ndarray | None = None, omega_sigma: float = 1.0
     ) -> None:
+        """Restart at ``rotation`` (``camera_from_target``), covariance ``rotation_cov``; ``omega`` in rad/s (body)."""
         self.rotation = np.array(rotation, dtype=np.float64)
         x0 = np.zeros(6)
         if omega is not None:
