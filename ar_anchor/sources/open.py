@@ -31,7 +31,7 @@ from .base import FrameSource
 from .files import IMAGE_EXTENSIONS, ImageFolderSource, VideoFileSource
 from .live import Grabber, LiveSource, SyntheticGrabber, WebcamGrabber
 
-__all__ = ["SYNTHETIC", "DeviceSettings", "live_demo_scene", "open_source"]
+__all__ = ["SYNTHETIC", "DeviceSettings", "is_device", "live_demo_scene", "open_source"]
 
 SYNTHETIC = "synthetic"  # the spec of the synthetic camera
 _GLOB_CHARS = re.compile(r"[*?\[]")
@@ -74,7 +74,8 @@ def live_demo_scene(
     )
 
 
-def _is_device(spec: str | int | os.PathLike[str]) -> bool:
+def is_device(spec: str | int | os.PathLike[str]) -> bool:
+    """``/dev/videoN`` or a camera index (an int, or a string of digits)."""
     if isinstance(spec, int):
         return True
     text = os.fspath(spec).strip()
@@ -125,7 +126,7 @@ def open_source(
     Raises :class:`~ar_anchor.errors.SourceError` naming the spec when it cannot be opened.
     """
     if live is None:
-        live = spec == SYNTHETIC or _is_device(spec)
+        live = spec == SYNTHETIC or is_device(spec)
     if not live:
         return _open_path(os.fspath(spec), fps=_DEFAULT_FPS if fps is None else fps)
     settings = device or DeviceSettings()

@@ -10,7 +10,8 @@ import sys
 from pathlib import Path
 
 from ...errors import ArAnchorError, InputError, OutputError, SourceError
-from .gather import calibrate_source, is_device
+from ...sources.open import is_device
+from .gather import calibrate_source
 from .recording import CalibrationRecording
 from .report import format_report, write_camera_yaml
 from .views import CharucoSpec

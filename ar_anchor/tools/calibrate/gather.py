@@ -15,20 +15,15 @@ from collections.abc import Callable
 import numpy as np
 
 from ...errors import InputError, SourceError
+from ...sources.open import is_device
 from .solve import CalibrationReport, CalibrationResult, Coverage, calibrate_views, coverage_of
 from .views import CharucoSpec, OnlineSelector, Rejection, View, ViewDetector, reason_counts, select_views
 
-__all__ = ["CANDIDATES_PER_VIEW", "Progress", "calibrate_source", "is_device", "quality_warnings"]
+__all__ = ["CANDIDATES_PER_VIEW", "Progress", "calibrate_source", "quality_warnings"]
 
 log = logging.getLogger(__name__)
 
 CANDIDATES_PER_VIEW = 10  # videos: consider about this many frames per wanted view
-
-
-def is_device(source: str) -> bool:
-    """``/dev/videoN`` or a bare camera index."""
-    text = str(source).strip()
-    return text.isdigit() or text.startswith("/dev/video")
 
 
 Progress = Callable[[str], None]
