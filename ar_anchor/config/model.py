@@ -211,6 +211,12 @@ class FilterConfig:
         "measurement that jumped); two frames: it is real",
         in_range(0.0, 10.0),
     )
+    glide_step_deg: float = key(
+        9.0,
+        "a change of branch (or into or out of halfway) is shown as a glide of at most this much per frame when "
+        "it is at most three such steps, so the overlay never snaps; 0: shown at once",
+        in_range(0.0, 180.0),
+    )
     flip_angle_deg: float = key(
         10.0, "an orientation uncertain by more than this (3 sigma) is not vouched for as tracked", in_range(0.0, 180.0)
     )

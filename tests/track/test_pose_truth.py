@@ -153,6 +153,57 @@ def test_decisive_measurements_move_a_wrong_commitment_within_a_few_frames():
     assert not any(wrong[3:]), wrong
 
 
+def near_mirror(pose: Pose, degrees: float) -> Pose:
+    """A second solution ``degrees`` from ``pose`` about the marker's x axis (a near fronto-parallel pair)."""
+    return Pose.from_matrix(pose.rotation @ matrix_from_rvec(np.radians([degrees, 0.0, 0.0])), pose.tvec)
+
+
+def branch_change(config: FilterConfig, separation_deg: float) -> tuple[list[float], list[float], list[str]]:
+    """A track committed to the wrong one of two solutions ``separation_deg`` apart, then fed frames that
+    decide for the truth: per frame after the change, the output's step from the last output, its error
+    and its state."""
+    track = TargetTrack(config, marker_corners_in_marker(0.05))
+    truth = tilted(25, 5)
+    wrong = near_mirror(truth, separation_deg)
+
+    def frame(right: bool) -> MarkerPose:
+        good, bad = (truth, wrong) if right else (wrong, truth)
+        corners = CAMERA.project(truth.apply(marker_corners_in_marker(0.05)))
+        return MarkerPose(0, 0.05, corners, (PoseHypothesis(good, 0.05), PoseHypothesis(bad, 0.6)), 12.0, "t")
+
+    for k in range(15):
+        last = track.update(frame(False), k * DT_NS, CAMERA)
+    assert angle_between_deg(last.pose.rotation, wrong.rotation) < 1.0
+    steps, errors, states = [], [], []
+    for k in range(15, 22):
+        update = track.update(frame(True), k * DT_NS, CAMERA)
+        steps.append(angle_between_deg(update.pose.rotation, last.pose.rotation))
+        errors.append(angle_between_deg(update.pose.rotation, truth.rotation))
+        states.append(update.state)
+        last = update
+    return steps, errors, states
+
+
+def test_a_change_of_branch_glides_instead_of_snapping():
+    # given a track on the wrong one of two solutions 16 deg apart, then frames that decide for the truth
+    steps, errors, states = branch_change(FilterConfig(), 16.0)
+    # then the overlay glides there (no step of a flip's size), is right from the first frame on (half
+    # way: 7 deg), fully there after two, and not vouched for while it glides
+    assert max(steps) < 10.0 and max(errors) < 10.0, (steps, errors)
+    assert errors[1] < 0.5 and states[0] == "ambiguous"
+    assert states[-1] == "tracked"
+    # while with the glide off the same change is one snap
+    steps, errors, _ = branch_change(FilterConfig(glide_step_deg=0.0), 16.0)
+    assert steps[0] > 15.0 and errors[0] < 0.5
+
+
+def test_a_change_of_branch_too_far_to_glide_is_shown_at_once():
+    # given solutions 40 deg apart: a glide would take more than three frames, each still a visible jump
+    steps, errors, _ = branch_change(FilterConfig(), 40.0)
+    # then the change is one step, and right at once
+    assert steps[0] > 35.0 and max(errors) < 0.5 and max(steps[1:]) < 1.0
+
+
 def test_association_survives_a_dropout_and_the_track_is_not_new():
     # given a committed track lost for 1 s (less than memory_s), while the marker turned by 25 degrees
     track = TargetTrack(FilterConfig(), marker_corners_in_marker(0.05))

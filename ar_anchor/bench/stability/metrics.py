@@ -133,6 +133,9 @@ def count_twitches(poses: Sequence[Pose | None]) -> int:
     )
 
 
+LAG_TOLERANCE = 0.05  # a shift must lower the median error by more than this fraction to count as lag
+
+
 def series_metrics(poses: list[Pose | None], truth: list[Pose | None], moving: bool) -> dict[str, Any]:
     """One pipeline's poses of one target against truth: frames, wrong frames, rotation and translation
     error statistics, twitches; jitter after ``SETTLE_FRAMES`` (static) or lag in frames (``moving``)."""
@@ -162,5 +165,8 @@ def series_metrics(poses: list[Pose | None], truth: list[Pose | None], moving: b
                 if poses[i] is not None and truth[i - lag] is not None
             ]
             lags.append(float(np.median(errors)) if errors else math.inf)
-        out["lag_frames"] = int(np.argmin(lags))
+        # the smallest shift within LAG_TOLERANCE of the best: where the curve is flat (an undecidable
+        # target's error is its ambiguity, not lag) noise would pick any shift; raw, which cannot lag, showed 5
+        best = min(lags)
+        out["lag_frames"] = next(i for i, v in enumerate(lags) if v <= best * (1.0 + LAG_TOLERANCE))
     return out

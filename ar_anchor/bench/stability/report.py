@@ -181,8 +181,9 @@ def stability_markdown(results: list[dict[str, Any]], meta: dict[str, Any]) -> s
         "reprojects (px, median over frames); a scenario is *undecidable* when even its 90th percentile stays "
         "below the filter's decision margin (corner-detector bias level), so no amount of evidence can decide: "
         "the tracker then says `ambiguous` and holds its best guess. *jitter*: RMS orientation around the mean "
-        "(static scenes, after the first second, for both pipelines). *lag*: shift in frames that best aligns "
-        "output with truth (moving scenes). "
+        "(static scenes, after the first second, for both pipelines). *lag*: the smallest shift in frames that "
+        "aligns output with truth within 5 % of the best shift's median error (moving scenes; on a flat curve "
+        "noise would pick any shift). "
         "*twitches*: consecutive outputs more than 10 deg apart with less than 1 cm of motion.",
         "",
         stability_table(results),

@@ -55,6 +55,8 @@ class TargetTrack:
         self._velocity: tuple[np.ndarray, np.ndarray] = (np.zeros(3), np.zeros(3))  # omega (body), v (camera)
         self._was_still = False  # the output branch's measurements stayed put for still_s (see _Stillness)
         self._stillness = _Stillness(config)
+        self._glide = np.zeros(3)  # body-frame offset still to glide off the published orientation (rad)
+        self._halfway = False  # the last measured output was halfway between the two solutions
 
     @property
     def alive(self) -> bool:
@@ -92,13 +94,16 @@ class TargetTrack:
         decided = self.evidence.judge(assigned, timestamp_ns, doubtful, self.frames, events)
         target = self.evidence.choose(assigned, decided, doubtful, timestamp_ns, self.output_branch)
         moved_branch = self._move_output(target, events)
+        halfway = self._halfway
         pose, covariance = self._measured_output(assigned, camera)
-        spike = not moved_branch and not restart_frame and self._spike(pose)
+        changed = moved_branch or halfway != self._halfway
+        pose = self._glided(pose, changed and not restart_frame, restart_frame, events)
+        spike = not changed and not restart_frame and self._spike(pose)
         if spike:
             events.append(TrackEvent("spike", "orientation jump in place held for one frame"))
             assert self._output is not None
             pose = Pose.from_matrix(self._output.rotation, pose.tvec)
-        vouched = self._vouched(assigned, decided, covariance, spike, blurred)
+        vouched = self._vouched(assigned, decided, covariance, spike, blurred) and not self._glide.any()
         hypotheses = (
             assigned[0].pose if assigned[0] is not None else None,
             assigned[1].pose if assigned[1] is not None else None,
@@ -213,7 +218,10 @@ class TargetTrack:
         """The output pose of a measured frame: the output branch's smoothed pose, held within
         ``output_sigmas`` standard deviations (the measurement's own covariance) of this frame's
         measurement on that branch, so smoothing can lower jitter but never lag behind real motion
-        by more than the noise. Returns the pose and the measurement's rotation covariance."""
+        by more than the noise; a moving target whose last frame was not ``tracked`` shows the measurement
+        itself (on a quick turn the smoother's half-sigma lag was enough to push a frame past a flip's
+        worth where the measurement stayed within it). Returns the pose and the measurement's rotation
+        covariance."""
         assert self.branches is not None
         smoother = self.branches.smoother(self.output_branch)
         rotation, translation = smoother.rotation, self.branches.translation_filter.translation
@@ -228,17 +236,42 @@ class TargetTrack:
                 self.output_branch, self.measured_ns, measured, cov_rot, cov_t
             )
             k = self.config.output_sigmas if still and not self.noise.outlier else self.config.output_sigmas_moving
+            if not still and not self._was_tracked:
+                k = 0.0  # moving and not vouched for: the smoother's lag is not worth its doubt (the measurement)
             error = so3_log(measured.rotation.T @ rotation)  # body-frame error, as the covariance's
             rotation = measured.rotation @ so3_exp(_within(error, cov_rot, k))
             translation = measured.tvec + _within(translation - measured.tvec, cov_t, k)
             covariance = cov_rot
             other = self._undecided_other(assigned)
+            self._halfway = other is not None
             if other is not None:
                 rotation = _halfway(rotation, self._held(other, assigned, camera, k))
         omega = smoother.omega
         velocity = self.branches.translation_filter.velocity
         self._velocity = (omega, velocity)
         return Pose.from_matrix(rotation, translation), covariance
+
+    def _glided(self, pose: Pose, changed: bool, restart: bool, events: list[TrackEvent]) -> Pose:
+        """The output shown gliding from the last one when it changed branch (or went into or out of
+        halfway): the orientation moves at most ``glide_step_deg`` per frame towards the new one, when
+        that takes at most three frames (a farther jump is shown at once: a glide could not hide it);
+        the glide rides on the new branch, so real motion passes through. Frames with glide left are
+        not ``tracked``."""
+        step = math.radians(self.config.glide_step_deg)
+        if restart or self._output is None or step <= 0.0:
+            self._glide = np.zeros(3)
+            return pose
+        if changed:
+            self._glide = so3_log(pose.rotation.T @ self._output.rotation)
+            if float(np.linalg.norm(self._glide)) > 3.0 * step:
+                self._glide = np.zeros(3)
+            elif self._glide.any():
+                events.append(TrackEvent("glide", f"{math.degrees(np.linalg.norm(self._glide)):.1f} deg glided off"))
+        size = float(np.linalg.norm(self._glide))
+        self._glide = self._glide * (max(size - step, 0.0) / size) if size > 0.0 else self._glide
+        if not self._glide.any():
+            return pose
+        return Pose.from_matrix(pose.rotation @ so3_exp(self._glide), pose.tvec)
 
     def _spike(self, pose: Pose) -> bool:
         """Is this output an orientation jump in place: more than ``flip_angle_deg`` from the last
