@@ -17,6 +17,7 @@ __all__ = [
     "InputError",
     "OutputError",
     "SourceError",
+    "printable",
 ]
 
 # exit codes of the command line: success; a run-time failure (outputs written so far stay valid);
@@ -46,3 +47,17 @@ class SourceError(InputError):
 
 class OutputError(ArAnchorError):
     """An output (recording, CSV, video) cannot be written."""
+
+
+def printable(text: object) -> str:
+    """``text`` (a path, a file name, a value from a file) safe to print on one terminal line: control
+    characters (newlines, carriage returns, ANSI escapes) and bytes that are not UTF-8 are shown escaped,
+    as Python would spell them (``\\n``, ``\\x1b``, ``\\udcff``); anything else is left as it is."""
+    out = []
+    for ch in str(text):
+        code = ord(ch)
+        if code < 0x20 or code == 0x7F or 0x80 <= code < 0xA0 or 0xD800 <= code < 0xE000:
+            out.append(repr(ch)[1:-1] if code < 0xD800 else f"\\u{code:04x}")
+        else:
+            out.append(ch)
+    return "".join(out)
