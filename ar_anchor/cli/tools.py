@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 from pathlib import Path
 from typing import Any
 
+from ..errors import InputError
 from .options import add_command, int_at_least, positive_float
 
 
@@ -78,6 +80,11 @@ def add_parsers(commands: Any) -> None:
 
 def cmd_study(args: argparse.Namespace) -> int:
     """``ar-anchor study``: run the chosen PnP studies; the exit code."""
+    if importlib.util.find_spec("matplotlib") is None:
+        raise InputError(
+            "ar-anchor study draws its figures with matplotlib, which is not installed: "
+            "pip install 'ar-anchor[study]' (or pip install matplotlib)"
+        )
     from ..tools.study.command import run_study
 
     return run_study(args)
