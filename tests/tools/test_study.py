@@ -130,14 +130,14 @@ def test_honest_points_are_in_view_at_their_depth_and_within_the_noise_of_the_tr
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["outliers", "--seeds", "0"], "--seeds: must be >= 1, got 0"),
-        (["outliers", "--seed", "-1"], "--seed: must be >= 0, got -1"),
+        (["outliers", "--seeds", "0"], r"--seeds: must be in \[1, 100000\], got 0"),
+        (["outliers", "--seed", "-1"], r"--seed: must be in \[0, 1e\+06\], got -1"),
         (["outliers", "--contamination", "100"], r"--contamination: percentages must be in \[0, 100\)"),
         (["ransac", "--contaminations", "0,97"], "leaves 4 honest points; 6 are needed"),
         (["ransac", "--thresholds", "1,two"], "--thresholds: expected numbers separated by commas"),
-        (["ransac", "--thresholds", "0,2"], "--thresholds: must all be > 0 px"),
+        (["ransac", "--thresholds", "0,2"], r"--thresholds: must all be in \[0.001, 1000\] px, got 0"),
         (["jitter", "--distances", "0.5,-1"], "--distances: must all be > 0 m"),
-        (["jitter", "--frames", "20"], "--frames: must be > 31"),
+        (["jitter", "--frames", "20"], r"--frames: must be in \[32, 100000\]"),
         (["jitter", "--tilt-deg", "85"], r"--tilt-deg: must be in \[0, 80\)"),
     ],
 )

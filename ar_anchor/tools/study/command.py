@@ -16,36 +16,30 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ...errors import OutputError
+from ...errors import printable
+from . import interrupt
 from .figures import plot_jitter, plot_outliers, plot_ransac
+from .files import StudyFiles, check_out, create_out
 from .jitter import run_jitter
+from .limits import in_range
 from .options import (
-    DEFAULT_OUT,
     FULL,
     QUICK,
     STUDIES,
     Defaults,
     camera_from_args,
-    check,
     command_line,
     jitter_setup,
     outliers_settings,
     pnp_setup,
     ransac_settings,
 )
-from .pnp import PnPSetup, run_outliers, run_ransac
+from .pnp import run_outliers, run_ransac
 from .recording import PLOTS, StudyRecording, jitter_frame_logger, record_result
 from .report import headline, jitter_markdown, outliers_markdown, ransac_markdown, seconds_text
 from .stats import Progress
 
 __all__ = ["run_study"]
-
-
-def _write(path: Path, text: str) -> None:
-    try:
-        path.write_text(text)
-    except OSError as err:
-        raise OutputError(f"{path}: cannot write ({err.strerror})") from None
 
 
 def _json_ready(value: Any) -> Any:
@@ -80,71 +74,88 @@ _WRITERS = {
     "jitter": (plot_jitter, jitter_markdown),
 }
 
+Plan = tuple[str, Any, dict[str, Any]]  # (study, its setup, its settings: empty for jitter)
 
-def _study(
-    name: str, args: argparse.Namespace, out: Path, defaults: Defaults, progress: Progress | None
-) -> dict[str, Any]:
-    """Run one study and write its four files; returns the result (with ``meta``)."""
-    camera = camera_from_args(args)
+
+def _plan(name: str, args: argparse.Namespace, defaults: Defaults) -> Plan:
+    """One study's setup and settings from the options, every number checked (nothing runs yet)."""
+    if name == "jitter":
+        return name, jitter_setup(args, defaults, camera_from_args(args, "jitter")), {}
+    setup = pnp_setup(args, camera_from_args(args, "pnp"))
+    settings = outliers_settings if name == "outliers" else ransac_settings
+    return name, setup, settings(args, defaults, setup)
+
+
+def _study(plan: Plan, args: argparse.Namespace, out: Path, progress: Progress | None) -> dict[str, Any]:
+    """Run one study and write its four files: under partial names, renamed into place together when all
+    are complete, removed when the study is interrupted or fails. Returns the result (with ``meta``)."""
+    name, setup, settings = plan
     command = command_line(args, name, out)
     start = time.perf_counter()
-    if name == "jitter":
-        setup, result = jitter_setup(args, defaults, camera), None
-    else:
-        setup = pnp_setup(args, camera)
-        result = _run_pnp(name, setup, args, defaults, progress)
-    from ...run.outputs import prepare_out_dir  # (imports the tracker: not on every CLI start)
-
-    prepare_out_dir(out)
+    result = None
+    if name == "outliers":
+        result = run_outliers(setup, **settings, progress=progress)
+    elif name == "ransac":
+        result = run_ransac(setup, **settings, progress=progress)
+    files = StudyFiles(out, name)
     recording = StudyRecording(out / f"{name}.rrd", name, PLOTS[name])
     try:
-        if name == "jitter":
+        if result is None:
             result = run_jitter(setup, progress=progress, on_frame=jitter_frame_logger(recording, setup))
         result["meta"] = _meta(command, time.perf_counter() - start)
-        png, text, views = _write_files(name, result, out)
+        text, views = _write_files(name, result, files)
+        interrupt.check()  # a Ctrl-C that matplotlib's cleanup swallowed
         record_result(recording, name, setup, result, views)
-        recording.documents(name, png, text)
-    finally:
-        recording.close()
+        recording.documents(name, files.partial["png"], text)
+        recording.flush()
+        with interrupt.held():  # the four files become final together
+            recording.close()
+            files.commit()
+    except BaseException:
+        with interrupt.held(raise_after=False):
+            recording.discard()
+            files.discard()
+        raise
     return result
 
 
-def _run_pnp(
-    name: str, setup: PnPSetup, args: argparse.Namespace, defaults: Defaults, progress: Progress | None
-) -> dict[str, Any]:
-    """The ``outliers`` or ``ransac`` study, its options checked first."""
-    if name == "outliers":
-        return run_outliers(setup, **outliers_settings(args, defaults, setup), progress=progress)
-    return run_ransac(setup, **ransac_settings(args, defaults, setup), progress=progress)
-
-
-def _write_files(name: str, result: dict[str, Any], out: Path) -> tuple[Path, str, Any]:
-    """``<name>.png``, ``.md`` and ``.json``; returns the figure's path, the Markdown and the result's
-    ``views`` (jitter: each distance's image, for the recording; not JSON), taken out of it."""
-    png = out / f"{name}.png"
+def _write_files(name: str, result: dict[str, Any], files: StudyFiles) -> tuple[str, Any]:
+    """``<name>.png``, ``.md`` and ``.json`` (partial); returns the Markdown and the result's ``views``
+    (jitter: each distance's image, for the recording; not JSON), taken out of it."""
     plotter, writer = _WRITERS[name]
-    plotter(result, png)
+    try:
+        plotter(result, files.partial["png"])
+    except OSError as err:
+        raise files.error("png", err) from None
     text = writer(result)
-    _write(out / f"{name}.md", text)
+    files.write_text("md", text)
     views = result.pop("views", None)
-    _write(out / f"{name}.json", json.dumps(_json_ready(result), indent=1) + "\n")
-    return png, text, views
+    files.write_text("json", json.dumps(_json_ready(result), indent=1) + "\n")
+    return text, views
 
 
 def run_study(args: argparse.Namespace) -> int:
-    """``ar-anchor study NAME``: run the study (or all three), write its files, print where; 0 on success."""
+    """``ar-anchor study NAME``: run the study (or all three), write its files, print where; 0 on success.
+
+    Every option is checked before the first study starts; Ctrl-C or SIGTERM ends the run within a
+    second (KeyboardInterrupt) and leaves the interrupted study's files out (those of a study that
+    completed before stay)."""
     quiet = bool(getattr(args, "quiet", False))
-    check(args.seed >= 0, f"--seed: must be >= 0, got {args.seed}")
-    out = DEFAULT_OUT if args.out is None else Path(args.out)
+    in_range("--seed", args.seed)
+    out = check_out(args.out)
     defaults = QUICK if args.quick else FULL
 
     def progress(message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
-    names = STUDIES if args.name == "all" else (args.name,)
-    for name in names:
-        result = _study(name, args, out, defaults, None if quiet else progress)
-        if not quiet:
-            print(headline(result))
-            print(f"wrote {out / name}.png, .md, .json, .rrd ({seconds_text(result['meta']['wall_time_s'])})")
+    plans = [_plan(name, args, defaults) for name in (STUDIES if args.name == "all" else (args.name,))]
+    create_out(out)
+    with interrupt.interruptible():
+        for plan in plans:
+            result = _study(plan, args, out, None if quiet else progress)
+            if not quiet:
+                print(headline(result))
+                where = printable(out / plan[0])
+                print(f"wrote {where}.png, .md, .json, .rrd ({seconds_text(result['meta']['wall_time_s'])})")
+            interrupt.check()
     return 0

@@ -23,7 +23,18 @@ def _figure(width_in: float, height_in: float, columns: int) -> tuple[Any, Any]:
 
 
 def _save(figure: Any, path: Path) -> None:
-    figure.savefig(path, dpi=100)
+    figure.savefig(path, dpi=100, format="png")  # (the path may be a partial name: the format is not from it)
+
+
+def _log_scale_if_positive(ax: Any, values: Any) -> bool:
+    """A log y axis when some value is positive (a log axis of none fails to draw: no detection at any
+    distance, or no noise); a linear one saying so otherwise. Whether the axis is log."""
+    array = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    if np.any(np.isfinite(array) & (array > 0)):
+        ax.set_yscale("log")
+        return True
+    ax.text(0.5, 0.5, "no positive value to plot", transform=ax.transAxes, ha="center", va="center", color="grey")
+    return False
 
 
 def plot_outliers(result: dict[str, Any], path: Path) -> None:
@@ -42,10 +53,10 @@ def plot_outliers(result: dict[str, Any], path: Path) -> None:
                 va="center",
                 fontsize=9,
             )
-    errors_ax.set_yscale("log")
+    log = _log_scale_if_positive(errors_ax, [r[k] for r in rows for k in ("plain_error_m", "ransac_error_m")])
     errors_ax.set_xticks([0, 1], ["solvePnP\n(all points)", "solvePnPRansac\n+ RefineLM"])
     errors_ax.set_xlim(-0.6, 1.9)
-    errors_ax.set_ylabel("translation error (m, log)")
+    errors_ax.set_ylabel("translation error (m, log)" if log else "translation error (m)")
     errors_ax.set_title(f"{len(rows)} seeds, {settings['contamination']:.0%} of points replaced; bar: median")
     errors_ax.grid(True, axis="y", which="both", alpha=0.3)
     honest = result["summary"]["honest_points"]
@@ -132,7 +143,7 @@ def plot_jitter(result: dict[str, Any], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         if metric != "flipped_pct":
             ax.set_xscale("log")
-            ax.set_yscale("log")
+            _log_scale_if_positive(ax, [r[f"{t}_{p}"].get(metric) for r in rows for t, p in STYLES])
             ax.set_xticks(distances, [f"{d:g}" for d in distances], fontsize=7)
             ax.minorticks_off()
         if metric == "rotation_std_deg" and rows and rows[0]["marker_raw"].get(metric) is not None:

@@ -23,6 +23,7 @@ from ...sources.base import Frame
 from ...sources.synthetic import SyntheticSource
 from ...synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
 from ...targets import TargetId
+from . import interrupt
 from .stats import Progress, finite
 
 # The tracker loads scipy and filterpy: it is imported where the study runs, so that `ar-anchor`'s
@@ -214,6 +215,7 @@ def run_jitter(
         gaps: list[float] = []
         states: list[str] = []
         for index in range(setup.frames):
+            interrupt.check()
             image = _noisy(clean, noise, setup.sensor_noise)
             frame = Frame(image, index, int(round(index * 1e9 / setup.fps)), truth)
             result = tracker.process(frame)

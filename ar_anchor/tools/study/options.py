@@ -13,7 +13,9 @@ from typing import Any
 from ...camera import CameraModel
 from ...config import load_config
 from ...errors import CameraError, InputError
+from .files import DEFAULT_OUT
 from .jitter import SETTLE_FRAMES, JitterSetup
+from .limits import MAX_VALUES, check_camera, check_distances, in_range
 from .pnp import PnPSetup
 
 __all__ = [
@@ -33,7 +35,6 @@ __all__ = [
 ]
 
 STUDIES = ("outliers", "ransac", "jitter")
-DEFAULT_OUT = Path("recordings") / "study"
 
 
 def _float_list(text: str, option: str) -> list[float]:
@@ -43,6 +44,8 @@ def _float_list(text: str, option: str) -> list[float]:
         raise InputError(f"{option}: expected numbers separated by commas, got {text!r}") from None
     if not values or not all(math.isfinite(v) for v in values):
         raise InputError(f"{option}: expected numbers separated by commas, got {text!r}")
+    if len(values) > MAX_VALUES:
+        raise InputError(f"{option}: at most {MAX_VALUES} values, got {len(values)}")
     return values
 
 
@@ -69,7 +72,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="outliers: solvePnP vs RANSAC + LM; ransac: threshold x contamination heatmap; "
         "jitter: pose noise vs distance, marker and board, raw and tracked; all: the three",
     )
-    parser.add_argument("--out", type=Path, metavar="DIR", help=f"output directory (default {DEFAULT_OUT}/)")
+    parser.add_argument("--out", metavar="DIR", help=f"output directory (default {DEFAULT_OUT}/)")
     parser.add_argument("--quick", action="store_true", help="few seeds, frames and distances (a smoke run)")
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="first seed (default 0)")
     parser.add_argument(
@@ -115,23 +118,25 @@ def check(condition: bool, message: str) -> None:
 
 def pnp_setup(args: argparse.Namespace, camera: CameraModel | None) -> PnPSetup:
     """The outliers/ransac problem from the options, checked."""
-    check(args.points >= 6, f"--points: must be >= 6, got {args.points}")
-    check(
-        math.isfinite(args.pixel_noise) and args.pixel_noise >= 0,
-        f"--pixel-noise: must be >= 0, got {args.pixel_noise}",
-    )
-    check(args.iterations >= 1, f"--iterations: must be >= 1, got {args.iterations}")
-    check(math.isfinite(args.threshold) and args.threshold > 0, f"--threshold: must be > 0 px, got {args.threshold}")
+    in_range("--points", args.points)
+    in_range("--pixel-noise", args.pixel_noise)
+    in_range("--iterations", args.iterations)
+    in_range("--threshold", args.threshold)
     setup = PnPSetup(points=args.points, noise_px=args.pixel_noise, iterations=args.iterations)
     return setup if camera is None else dataclasses.replace(setup, camera=camera)
 
 
-def camera_from_args(args: argparse.Namespace) -> CameraModel | None:
-    """The ``--camera`` file's model, or None (each study's own default camera)."""
+def camera_from_args(args: argparse.Namespace, study: str) -> CameraModel | None:
+    """The ``--camera`` file's model, checked for the ``study`` (``jitter`` or ``pnp``), or None (each
+    study's own default camera)."""
+    if args.camera is None:
+        return None
     try:
-        return None if args.camera is None else CameraModel.from_yaml(args.camera)
+        camera = CameraModel.from_yaml(args.camera)
     except CameraError as err:
         raise CameraError(f"--camera: {err}") from None
+    check_camera(camera, args.camera, study)
+    return camera
 
 
 def outliers_settings(args: argparse.Namespace, defaults: Defaults, setup: PnPSetup) -> dict[str, Any]:
@@ -149,7 +154,8 @@ def ransac_settings(args: argparse.Namespace, defaults: Defaults, setup: PnPSetu
     """:func:`~.pnp.run_ransac`'s keyword arguments from the options, checked (the ``--threshold`` is
     always among the thresholds)."""
     thresholds = sorted(set(_float_list(args.thresholds, "--thresholds")) | {args.threshold})
-    check(all(t > 0 for t in thresholds), f"--thresholds: must all be > 0 px, got {args.thresholds}")
+    for threshold in thresholds:
+        in_range("--thresholds", threshold, what="must all be")
     text = defaults.contaminations if args.contaminations is None else args.contaminations
     contaminations = [
         _contamination(c, "--contaminations", setup.points) for c in sorted(set(_float_list(text, "--contaminations")))
@@ -172,29 +178,20 @@ def _contamination(percent: float, option: str, points: int) -> float:
 
 def _seeds(args: argparse.Namespace, default: int) -> int:
     seeds = default if args.seeds is None else args.seeds
-    check(seeds >= 1, f"--seeds: must be >= 1, got {seeds}")
+    in_range("--seeds", seeds)
     return seeds
 
 
 def jitter_setup(args: argparse.Namespace, defaults: Defaults, camera: CameraModel | None) -> JitterSetup:
     """The jitter scene and tracker config from the options, checked."""
     frames = defaults.frames if args.frames is None else args.frames
-    check(
-        frames > SETTLE_FRAMES + 1,
-        f"--frames: must be > {SETTLE_FRAMES + 1} (the first {SETTLE_FRAMES} are the filter's settling time), "
-        f"got {frames}",
-    )
-    distances = sorted(
-        set(_float_list(defaults.distances if args.distances is None else args.distances, "--distances"))
-    )
-    check(all(d > 0 for d in distances), f"--distances: must all be > 0 m, got {args.distances}")
-    check(math.isfinite(args.marker_m) and args.marker_m > 0, f"--marker-m: must be > 0, got {args.marker_m}")
-    check(0.0 <= args.tilt_deg < 80.0, f"--tilt-deg: must be in [0, 80), got {args.tilt_deg}")
-    check(
-        math.isfinite(args.sensor_noise) and args.sensor_noise >= 0,
-        f"--sensor-noise: must be >= 0, got {args.sensor_noise}",
-    )
-    check(math.isfinite(args.blur) and args.blur >= 0, f"--blur: must be >= 0, got {args.blur}")
+    in_range("--frames", frames, why=f"the first {SETTLE_FRAMES} are the filter's settling time")
+    text = defaults.distances if args.distances is None else args.distances
+    distances = sorted(set(_float_list(text, "--distances")))
+    in_range("--marker-m", args.marker_m)
+    check(0.0 <= args.tilt_deg < 80.0, f"--tilt-deg: must be in [0, 80), got {args.tilt_deg:g}")
+    in_range("--sensor-noise", args.sensor_noise)
+    in_range("--blur", args.blur)
     setup = JitterSetup(
         config=load_config(args.config),
         marker_m=args.marker_m,
@@ -206,7 +203,9 @@ def jitter_setup(args: argparse.Namespace, defaults: Defaults, camera: CameraMod
         seed=args.seed,
         roi=args.roi,
     )
-    return setup if camera is None else dataclasses.replace(setup, camera=camera)
+    setup = setup if camera is None else dataclasses.replace(setup, camera=camera)
+    check_distances(setup, distances, text)
+    return setup
 
 
 _OPTIONS = (

@@ -20,6 +20,7 @@ import numpy as np
 
 from ...camera import CameraModel
 from ...geometry import Pose, angle_between_deg
+from . import interrupt
 from .stats import Progress, finite, spread
 
 __all__ = [
@@ -241,6 +242,7 @@ def run_outliers(
     """Plain ``solvePnP`` vs RANSAC + LM refinement over ``seeds`` problems; per-seed numbers and summary."""
     rows = []
     for i in range(seeds):
+        interrupt.check()
         seed = first_seed + i
         if progress is not None and (i % max(seeds // 4, 1) == 0):
             progress(f"outliers: seed {i + 1}/{seeds}")
@@ -315,10 +317,7 @@ def run_ransac(
         if progress is not None:
             progress(f"ransac: threshold {threshold:g} px ({t_index + 1}/{len(thresholds_px)})")
         for contamination in contaminations:
-            trials = [
-                solve_trial(setup, make_correspondences(setup, contamination, first_seed + i), threshold, plain=False)
-                for i in range(seeds)
-            ]
+            trials = [_ransac_trial(setup, contamination, first_seed + i, threshold) for i in range(seeds)]
             errors = [t.ransac_error_m for t in trials]
             recalls = [t.recall for t in trials]
             precisions = [t.precision for t in trials]
@@ -363,6 +362,12 @@ def run_ransac(
         "cells": cells,
         "summary": summary,
     }
+
+
+def _ransac_trial(setup: PnPSetup, contamination: float, seed: int, threshold_px: float) -> PnPTrial:
+    """One seed's problem solved by RANSAC + LM alone (after a check for Ctrl-C)."""
+    interrupt.check()
+    return solve_trial(setup, make_correspondences(setup, contamination, seed), threshold_px, plain=False)
 
 
 def _succeeds_up_to(row: Sequence[dict[str, Any]], min_success_pct: float) -> float | None:

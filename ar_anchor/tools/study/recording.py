@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ...errors import OutputError
 from ...geometry import Pose, angle_between_deg
 from .jitter import JITTER_SERIES, STYLES, JitterSetup
 from .pnp import PnPSetup, make_correspondences
@@ -38,7 +39,8 @@ _HONEST, _REPLACED, _POINTS = (40, 200, 80), (230, 50, 50), (200, 200, 200)
 
 
 class StudyRecording:
-    """One study's rerun recording, written to ``<out>/<name>.rrd`` (renamed into place when complete);
+    """One study's rerun recording, written to ``<out>/.<name>.rrd.<pid>.tmp`` and renamed to ``<name>.rrd``
+    by :meth:`close` (complete) or removed by :meth:`discard` (interrupted, failed);
     :attr:`recording` is the :class:`~ar_anchor.viz.sinks.Recording` the study's numbers are logged to."""
 
     def __init__(self, path: Path, name: str, plots: Sequence[tuple[str, str]]) -> None:
@@ -59,9 +61,21 @@ class StudyRecording:
         self.recording.image_file(f"{name}/figure", figure)
         self.recording.markdown(f"{name}/table", markdown)
 
+    def flush(self) -> None:
+        """Write out what was logged (at most 30 s), so that :meth:`close` is quick."""
+        self.recording.flush(timeout_s=30.0)
+
     def close(self) -> None:
-        """Flush (at most 30 s) and rename the file into place."""
+        """Flush and rename the file into place: the recording is complete."""
         self.recording.close(keep=True, timeout_s=30.0)
+
+    def discard(self) -> None:
+        """Close and remove the partial file (an interrupted or failed study leaves no recording that
+        looks final); a sink that cannot be flushed within a second is dropped all the same."""
+        try:
+            self.recording.close(keep=False, timeout_s=1.0)
+        except OutputError:
+            pass
 
 
 def record_result(
