@@ -14,15 +14,16 @@ import io
 import logging
 import os
 import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .errors import CameraError, OutputError
+from .errors import CameraError, OutputError, printable
 
-__all__ = ["CameraModel"]
+__all__ = ["MAX_FILE_BYTES", "CameraModel", "input_file_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +37,42 @@ MAX_NESTING = 1000
 _OPENERS = re.compile(rb"[\[{]|[\]}]|</|/>|<[A-Za-z_]")
 _MAX_DECOMPRESSED = 64 * 1024 * 1024
 _ONE_CHANNEL_DT = re.compile(r"1?[ucwsifdh]")  # OpenCV's element types (uchar ... double, half)
+
+# Input files (camera, config, layout) are small: a larger one is refused before it is read (a 2 GiB
+# sparse file took a minute and gigabytes of memory to be read whole and then refused)
+MAX_FILE_BYTES = 16 * 2**20
+
+# A camera matrix that cannot be a real camera's is refused, one that is odd is used with a warning:
+_FOCAL_RANGE = (0.01, 1000.0)  # fx, fy in image sides (max(width, height)): 179 deg to 0.06 deg of view
+_CENTRE_SLACK = 0.5  # the principal point within [-0.5, 1.5] x the image size (warned outside the image)
+_SKEW_REFUSED = 0.1  # |K[0][1]| above this x fx is refused (OpenCV's model has no skew and ignores it) ...
+_SKEW_WARNED = 1e-6  # ... and above this x fx warned about
+
+
+def input_file_problem(path: Path, max_bytes: int = MAX_FILE_BYTES) -> str | None:
+    """Why ``path`` cannot be read as a small input file (a camera, config or layout file), or None.
+
+    Looked up without opening it: not there, a directory, a FIFO, a device or a socket (opening a FIFO
+    would wait for a writer), or larger than ``max_bytes``.
+    """
+    try:
+        info = path.stat()
+    except (FileNotFoundError, NotADirectoryError):
+        return "not found"
+    except OSError as err:
+        return f"cannot read ({err.strerror})"
+    mode = info.st_mode
+    if stat.S_ISDIR(mode):
+        return "is a directory, not a file"
+    if stat.S_ISFIFO(mode):
+        return "is a FIFO (named pipe), not a file"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "is a device, not a file"
+    if not stat.S_ISREG(mode):
+        return "is not a regular file"
+    if info.st_size > max_bytes:
+        return f"is {info.st_size / 2**20:.0f} MiB, too large to be one (at most {max_bytes // 2**20} MiB); not read"
+    return None
 
 
 def opencv_path_problem(path: str | os.PathLike[str]) -> str | None:
@@ -139,29 +176,18 @@ class CameraModel:
     def from_yaml(cls, path: str | os.PathLike[str]) -> CameraModel:
         """Read an OpenCV FileStorage YAML camera file; raise :class:`CameraError` naming the file."""
         path = Path(path)
-        if not path.is_file():
-            raise CameraError(f"camera file {path}: not found")
-        problem = opencv_path_problem(path)
-        if problem is not None:
-            raise CameraError(f"camera file {path}: {problem}")
-        try:
-            text = path.read_bytes()
-        except OSError as err:
-            raise CameraError(f"camera file {path}: cannot read ({err.strerror})") from err
-        if not text.strip():
-            raise CameraError(f"camera file {path}: file is empty")
-        problem = filestorage_nesting_problem(text, path)
-        if problem is not None:
-            raise CameraError(f"camera file {path}: not a camera file ({problem})")
+        _check_file_bytes(path)
         try:
             storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         except (cv2.error, SystemError) as err:  # OpenCV 5's binding wraps parse errors in SystemError
-            raise CameraError(f"camera file {path}: not valid OpenCV YAML/XML ({_first_line(err)})") from None
+            raise CameraError(
+                f"camera file {printable(path)}: not valid OpenCV YAML/XML/JSON ({_parse_error(err)})"
+            ) from None
         try:
             if not storage.isOpened():
-                raise CameraError(f"camera file {path}: cannot be parsed as OpenCV FileStorage")
+                raise CameraError(f"camera file {printable(path)}: cannot be parsed as OpenCV FileStorage")
             if not storage.root().isMap():
-                raise CameraError(f"camera file {path}: expected key: value pairs at the top level")
+                raise CameraError(f"camera file {printable(path)}: expected key: value pairs at the top level")
             matrix = _read_mat(storage, "camera_matrix", path, required=True)
             dist = _read_mat(storage, "distortion_coefficients", path, required=False)
             width = _read_int(storage, "image_width", path)
@@ -171,21 +197,23 @@ class CameraModel:
                 name = model.string() if model.isString() else ""
                 if name not in _ROS_DISTORTION_MODELS:
                     raise CameraError(
-                        f"camera file {path}: distortion_model {name or '(not a name)'!r} is not supported "
+                        f"camera file {printable(path)}: distortion_model {name or '(not a name)'!r} is not supported "
                         f"(use {' or '.join(_ROS_DISTORTION_MODELS)}: OpenCV's pinhole model)"
                     )
         except (cv2.error, SystemError) as err:
-            raise CameraError(f"camera file {path}: unreadable content ({_first_line(err)})") from None
+            raise CameraError(f"camera file {printable(path)}: unreadable content ({_parse_error(err)})") from None
         except UnicodeDecodeError:  # a text value (dt, distortion_model) that is not UTF-8
-            raise CameraError(f"camera file {path}: not UTF-8 text") from None
+            raise CameraError(f"camera file {printable(path)}: not UTF-8 text") from None
         finally:
             storage.release()
         if matrix is not None and matrix.size == 9:
             matrix = matrix.reshape(3, 3)
         try:
-            return cls(matrix, np.zeros(0) if dist is None else dist, width, height)
+            camera = cls(matrix, np.zeros(0) if dist is None else dist, width, height)
+            camera.check_plausible()
         except CameraError as err:
-            raise CameraError(f"camera file {path}: {err}") from err
+            raise CameraError(f"camera file {printable(path)}: {err}") from err
+        return camera
 
     def to_yaml(self, path: str | os.PathLike[str], **extra: str | float | int) -> None:
         """Write the OpenCV FileStorage YAML that :meth:`from_yaml` reads (extra scalars appended)."""
@@ -218,6 +246,46 @@ class CameraModel:
     def dist_or_none(self) -> np.ndarray | None:
         """Distortion for OpenCV calls (None when there is none)."""
         return self.dist_coeffs if self.has_distortion else None
+
+    def check_plausible(self) -> None:
+        """Refuse (:class:`CameraError`) intrinsics no real camera has, warn about odd ones.
+
+        Refused: a focal length outside 0.01 to 1000 image sides (checked before anything is computed
+        from it), a principal point far outside the image (beyond half an image size), a skew
+        ``K[0][1]`` above a tenth of fx (OpenCV's model has no skew: it ignores it), and distortion
+        that folds the image (the lens model turns back on itself before the image's edge, so that two
+        directions land on one pixel). Warned: a principal point outside the image, a small skew.
+        """
+        k, (width, height) = self.camera_matrix, self.size
+        fx, fy, skew, cx, cy = k[0, 0], k[1, 1], k[0, 1], k[0, 2], k[1, 2]
+        low, high = (factor * max(width, height) for factor in _FOCAL_RANGE)
+        for name, focal in (("fx", fx), ("fy", fy)):
+            if not low <= focal <= high:
+                raise CameraError(
+                    f"camera_matrix: {name} = {focal:g} px is no focal length for a {width}x{height} image "
+                    f"(expected {low:g} to {high:g} px)"
+                )
+        slack_x, slack_y = _CENTRE_SLACK * width, _CENTRE_SLACK * height
+        centre = f"principal point (cx, cy) = ({cx:g}, {cy:g})"
+        if not (-slack_x <= cx <= width + slack_x and -slack_y <= cy <= height + slack_y):
+            raise CameraError(
+                f"camera_matrix: {centre} lies far outside the {width}x{height} image (a mistyped value, or the "
+                "calibration of another image size?)"
+            )
+        if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+            log.warning(
+                "camera_matrix: %s lies outside the %dx%d image (a cropped image's calibration?)", centre, width, height
+            )
+        if abs(skew) > _SKEW_REFUSED * fx:
+            raise CameraError(f"camera_matrix: skew K[0][1] = {skew:g}: OpenCV's camera model has none (expected 0)")
+        if abs(skew) > _SKEW_WARNED * fx:
+            log.warning("camera_matrix: skew K[0][1] = %g is ignored: OpenCV's camera model has none", skew)
+        fold = _distortion_fold(self)
+        if fold is not None:
+            raise CameraError(
+                f"distortion_coefficients fold the image: the lens model turns back on itself near pixel "
+                f"({fold[0]:.0f}, {fold[1]:.0f}), inside the {width}x{height} image (not a usable calibration)"
+            )
 
     def scaled_to(self, width: int, height: int, *, warn: bool = True) -> CameraModel:
         """Intrinsics for the same lens at another resolution (pixel-centre convention kept).
@@ -260,6 +328,90 @@ class CameraModel:
         return pixels.reshape(-1, 2)
 
 
+def _distort(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's distortion of normalised image points (radial, rational, tangential, thin prism; the
+    14-coefficient model's sensor tilt is left out: a projective map, it folds nothing)."""
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d[:12]
+    r2 = x * x + y * y
+    r4, r6 = r2 * r2, r2 * r2 * r2
+    radial = (1 + k1 * r2 + k2 * r4 + k3 * r6) / (1 + k4 * r2 + k5 * r4 + k6 * r6)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + s1 * r2 + s2 * r4
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + s3 * r2 + s4 * r4
+    return xd, yd
+
+
+def _distortion_fold(camera: CameraModel, rays: int = 72, samples: int = 800) -> tuple[float, float] | None:
+    """Where (pixels) the distortion model folds inside the image, or None when it does not.
+
+    Walks ``rays`` directions out from the principal point, from a millionth of the focal length to ten
+    focal lengths off-axis (84 deg), and looks at the Jacobian of the undistorted-to-distorted map: where
+    its determinant is not positive the map folds. Only the part of each ray before its distorted point
+    leaves the image counts (beyond it, a polynomial's turn is outside the calibrated field and harmless).
+    """
+    if not camera.has_distortion:
+        return None
+    d = np.zeros(14)
+    d[: camera.dist_coeffs.size] = camera.dist_coeffs
+    k, (width, height) = camera.camera_matrix, camera.size
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    angles = np.linspace(0.0, 2 * np.pi, rays, endpoint=False)[:, None]
+    radii = np.geomspace(1e-6, 10.0, samples)[None, :]
+    x, y = radii * np.cos(angles), radii * np.sin(angles)
+    h = radii * 1e-5
+    with np.errstate(all="ignore"):
+        xd, yd = _distort(x, y, d)
+        dx_x, dy_x = (a - b for a, b in zip(_distort(x + h, y, d), _distort(x - h, y, d)))
+        dx_y, dy_y = (a - b for a, b in zip(_distort(x, y + h, d), _distort(x, y - h, d)))
+        det = dx_x * dy_y - dx_y * dy_x
+        u, v = fx * xd + cx, fy * yd + cy
+        inside = (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
+        folded = ~(det > 0) | ~np.isfinite(u) | ~np.isfinite(v)
+    # each ray up to (not including) its first sample outside the image
+    before_exit = np.cumprod(inside, axis=1).astype(bool)
+    bad = folded & before_exit
+    if not bad.any():
+        return None
+    ray, sample = np.argwhere(bad)[0]
+    previous = max(sample - 1, 0)
+    return float(u[ray, previous]), float(v[ray, previous])
+
+
+def _check_file_bytes(path: Path) -> None:
+    """Refuse, before OpenCV parses it, a camera file that is not a small text file: missing, not a
+    regular file, too large (not read), empty, binary, an XML document with a DOCTYPE (entity
+    declarations: OpenCV's parser does not expand them, and a "billion laughs" file is a hostile one),
+    or nested deeper than OpenCV's recursive parsers survive."""
+    where = f"camera file {printable(path)}"
+    problem = input_file_problem(path) or opencv_path_problem(path)
+    if problem is not None:
+        raise CameraError(f"{where}: {problem}")
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise CameraError(f"{where}: cannot read ({err.strerror})") from err
+    if not data.strip():
+        raise CameraError(f"{where}: file is empty")
+    if path.suffix.lower() != ".gz" and b"\0" in data:
+        raise CameraError(f"{where}: binary data, not a camera file (OpenCV YAML, XML or JSON text)")
+    if re.search(rb"<!(DOCTYPE|ENTITY)", data[:65536], re.IGNORECASE):
+        raise CameraError(f"{where}: XML with a DOCTYPE or entity declarations is not a camera file OpenCV reads")
+    problem = filestorage_nesting_problem(data, path)
+    if problem is not None:
+        raise CameraError(f"{where}: not a camera file ({problem})")
+
+
+def _parse_error(err: Exception) -> str:
+    """The parser's own complaint, without OpenCV's source location and the file's name: OpenCV 5's
+    binding raises ``SystemError("... returned a result with an exception set")`` with the
+    ``cv2.error`` as its cause."""
+    cause = err.__cause__ or err.__context__ if isinstance(err, SystemError) else err
+    text = _first_line(cause if isinstance(cause, Exception) else err)
+    found = re.search(r"\((\d+)\): (.*?)'?$", text)
+    if found:
+        return f"line {found.group(1)}: {found.group(2)}"
+    return "unreadable" if "returned a result with an exception set" in text else printable(text)
+
+
 def _first_line(err: Exception) -> str:
     lines = [line.strip() for line in str(err).splitlines() if line.strip()]
     return lines[-1] if lines else type(err).__name__
@@ -269,24 +421,27 @@ def _read_mat(storage: cv2.FileStorage, key: str, path: Path, *, required: bool)
     node = storage.getNode(key)
     if node.empty() or node.isNone():
         if required:
-            raise CameraError(f"camera file {path}: missing '{key}'")
+            raise CameraError(f"camera file {printable(path)}: missing '{key}'")
         return None
     if node.isSeq():
         return _read_numbers(node, key, path)
     if not node.isMap():
-        raise CameraError(f"camera file {path}: '{key}' is not an OpenCV matrix (!!opencv-matrix)")
+        raise CameraError(f"camera file {printable(path)}: '{key}' is not an OpenCV matrix (!!opencv-matrix)")
     # Read here rather than with FileNode.mat(): OpenCV 5 copies `data` into a matrix of `rows` x `cols`
     # before it checks the two agree, so a matrix without `cols` (0) overflows the heap and aborts later.
     rows, cols, data, dt = (node.getNode(name) for name in ("rows", "cols", "data", "dt"))
     if not (rows.isInt() and cols.isInt() and data.isSeq() and rows.real() > 0 and cols.real() > 0):
-        raise CameraError(f"camera file {path}: '{key}' needs positive integer rows and cols and a data list")
+        raise CameraError(
+            f"camera file {printable(path)}: '{key}' needs positive integer rows and cols and a data list"
+        )
     if not (dt.empty() or dt.isNone()):  # OpenCV's !!opencv-matrix; ROS camera_info has no dt
         if not (dt.isString() and _ONE_CHANNEL_DT.fullmatch(dt.string())):
-            raise CameraError(f"camera file {path}: '{key}' dt must be a one-channel element type such as d")
+            raise CameraError(f"camera file {printable(path)}: '{key}' dt must be a one-channel element type such as d")
     values = _read_numbers(data, key, path)
     if values.size != rows.real() * cols.real():
         raise CameraError(
-            f"camera file {path}: '{key}' is {int(rows.real())}x{int(cols.real())} but has {values.size} values"
+            f"camera file {printable(path)}: '{key}' is {int(rows.real())}x{int(cols.real())} "
+            f"but has {values.size} values"
         )
     return values.reshape(int(rows.real()), int(cols.real()))
 
@@ -295,17 +450,17 @@ def _read_numbers(node: cv2.FileNode, key: str, path: Path) -> np.ndarray:
     """A sequence of numbers (OpenCV reads any other node as 0 or DBL_MAX: refuse them)."""
     items = [node.at(i) for i in range(node.size())]
     if not all(item.isInt() or item.isReal() for item in items):
-        raise CameraError(f"camera file {path}: '{key}' must hold numbers only")
+        raise CameraError(f"camera file {printable(path)}: '{key}' must hold numbers only")
     return np.asarray([item.real() for item in items], dtype=np.float64)
 
 
 def _read_int(storage: cv2.FileStorage, key: str, path: Path) -> int:
     node = storage.getNode(key)
     if node.empty() or node.isNone():
-        raise CameraError(f"camera file {path}: missing '{key}'")
+        raise CameraError(f"camera file {printable(path)}: missing '{key}'")
     if not (node.isInt() or node.isReal()):
-        raise CameraError(f"camera file {path}: '{key}' must be a number")
+        raise CameraError(f"camera file {printable(path)}: '{key}' must be a number")
     value = node.real()
     if not np.isfinite(value) or value != int(value) or value <= 0:
-        raise CameraError(f"camera file {path}: '{key}' must be a positive integer, got {value:g}")
+        raise CameraError(f"camera file {printable(path)}: '{key}' must be a positive integer, got {value:g}")
     return int(value)

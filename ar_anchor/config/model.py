@@ -36,7 +36,22 @@ __all__ = [
     "RecordingConfig",
     "TrackerConfig",
     "demo_config",
+    "implausible_length_hint",
 ]
+
+MAX_PLAUSIBLE_LENGTH_M = 1.0  # a marker side above this is most likely millimetres (34 for 0.034)
+
+
+def implausible_length_hint(length_m: float, name: str) -> str | None:
+    """A warning for a marker side of ``length_m`` metres set by ``name`` (``--marker-length``, ``[markers]
+    length_m =``) when it is over a metre: ``--marker-length 34: a marker 34 m wide? did you give
+    millimetres? 34 mm is --marker-length 0.034``; None for a plausible one."""
+    if not length_m > MAX_PLAUSIBLE_LENGTH_M:
+        return None
+    return (
+        f"{name} {length_m:g}: a marker {length_m:g} m wide? did you give millimetres? "
+        f"{length_m:g} mm is {name} {length_m / 1000:g}"
+    )
 
 
 def _dictionary_problem(name: str, _limit: int) -> str | None:
@@ -274,7 +289,7 @@ class OverlayConfig:
     )
     kind: str = key("cube", " | ".join(OVERLAY_KINDS), one_of(OVERLAY_KINDS))
     size_m: float = key(
-        0.0, "cube side / axis length / mesh's largest extent, metres (0: the target's size)", non_negative
+        0.0, "cube side / axis length / mesh's largest extent, metres (0: the target's size)", in_range(0.0, 100.0)
     )
     path: str = key(
         "",
@@ -282,7 +297,7 @@ class OverlayConfig:
         "(configs/models/pin.ply is the same model as a file)",
         printable,
     )
-    scale: float = key(1.0, "mesh: file units -> metres, used when size_m is 0", positive)
+    scale: float = key(1.0, "mesh: file units -> metres, used when size_m is 0", in_range(1e-9, 1e6))
     offset_m: tuple[float, float, float] = vector_key(
         (0.0, 0.0, 0.0),
         "in the target's anchor frame: its centre, x right, y up, z out of the marker or board",

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import logging
 import math
 import os
 import sys
@@ -27,11 +28,12 @@ from pathlib import Path
 from typing import Any
 
 from ..boards import layout_from_mapping, read_layout
-from ..errors import ConfigError
+from ..camera import input_file_problem
+from ..errors import ConfigError, printable
 from .board import BOARD_KEYS, BoardConfig, BoardKeys, CharucoBoardKeys, CustomBoardKeys
 from .dictionaries import dictionary_size
 from .keys import ConfigValueError, Key, declared, default_of, table_keys
-from .model import OverlayConfig, TrackerConfig
+from .model import OverlayConfig, TrackerConfig, implausible_length_hint
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -39,6 +41,8 @@ else:  # pragma: no cover - exercised on 3.10 only
     import tomli as tomllib
 
 __all__ = ["load_config", "parse_config", "read_keys"]
+
+log = logging.getLogger(__name__)
 
 
 class Table:
@@ -207,6 +211,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     recording = read_table(root, "recording")
     overlays = _read_overlays(root)
     root.done(_names(TrackerConfig))
+    _warn_implausible_lengths(markers, boards, path)
     return TrackerConfig(
         detector=detector,
         markers=markers,
@@ -217,6 +222,27 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         overlays=overlays,
         source=path,
     )
+
+
+def _warn_implausible_lengths(markers: Any, boards: tuple[BoardConfig, ...], path: str) -> None:
+    """Warn (once per key) about marker sides over a metre: most likely millimetres."""
+    lengths = [("[markers] length_m =", markers.length_m)]
+    lengths += [(f"[markers.lengths_m] {marker_id} =", length) for marker_id, length in markers.lengths_m.items()]
+    for board in boards:
+        if board.kind != "custom":
+            lengths.append((f"[[boards]] '{board.name}' marker_length_m =", board.marker_length_m))
+        elif implausible_length_hint(side := max(map(board.marker_length_of, board.marker_ids), default=0.0), ""):
+            log.warning(
+                "%s: [[boards]] '%s': its layout's markers are %g m wide: did you give millimetres? (a layout's "
+                "corners are in metres)",
+                printable(path),
+                board.name,
+                side,
+            )
+    for name, length in lengths:
+        hint = implausible_length_hint(length, name)
+        if hint is not None:
+            log.warning("%s: %s", printable(path), hint)
 
 
 def _array_of_tables(root: Table, name: str) -> list[Any]:
@@ -317,6 +343,9 @@ def _custom_board(table: Table, name: str, dictionary: str, limit: int) -> Board
         raise table.fail("layout", 'a custom board needs either layout = "<file>" or inline [[boards.markers]]')
     if has_file:
         layout_path = _base_folder(table.path) / table.read(CustomBoardKeys, "layout")
+        problem = input_file_problem(layout_path)
+        if problem is not None:
+            raise table.fail("layout", f"layout file {printable(layout_path)}: {problem}")
         try:
             layout = read_layout(layout_path)
         except ConfigError as err:
@@ -373,8 +402,9 @@ def load_config(path: str | os.PathLike[str] | None = None, *, demo: bool = Fals
 
         return demo_config() if demo else TrackerConfig()
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file {path}: not found")
+    problem = input_file_problem(path)
+    if problem is not None:
+        raise ConfigError(f"config file {printable(path)}: {problem}")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError as err:

@@ -27,6 +27,8 @@ unsure.
 
 from __future__ import annotations
 
+import difflib
+import logging
 import math
 from dataclasses import dataclass
 from typing import Protocol
@@ -36,12 +38,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..camera import CameraModel
-from ..config import OverlayConfig, TrackerConfig
-from ..targets import TrackState
+from ..config import OverlayConfig, TrackerConfig, dictionary_size
+from ..targets import TargetId, TrackState
 from ..track.tracker import FrameResult, TargetResult
 from .models import Model, cube_model, load_mesh
 
-__all__ = ["Overlay", "OverlayRenderer", "target_from_anchor", "STATE_STYLE"]
+__all__ = ["Overlay", "OverlayRenderer", "target_from_anchor", "STATE_STYLE", "unmatched_target_problem"]
+
+log = logging.getLogger(__name__)
 
 _LIGHT = np.array([-0.35, -0.6, -0.72])  # toward the light, camera frame (x right, y down, z forward)
 _LIGHT = _LIGHT / np.linalg.norm(_LIGHT)
@@ -128,6 +132,10 @@ class OverlayRenderer:
         self.config = config
         self.camera = camera
         self._meshes: dict[str, Model] = {}
+        for problem in dict.fromkeys(
+            filter(None, (unmatched_target_problem(config, o.target) for o in config.overlays))
+        ):
+            log.warning("%s", problem)
         for overlay in config.overlays:
             if overlay.kind == "mesh" and overlay.path not in self._meshes:
                 self._meshes[overlay.path] = load_mesh(overlay.path)
@@ -204,6 +212,31 @@ class OverlayRenderer:
         for text, target in labels:
             _draw_label(out, text, target, camera)
         return out
+
+
+def unmatched_target_problem(config: TrackerConfig, target: str) -> str | None:
+    """Why an overlay's exact ``target`` (``board:<name>``, ``marker:<id>``) can never be drawn with
+    ``config``, naming what is configured; None when it can (or for a pattern: ``marker:*`` ...)."""
+    try:
+        target = TargetId.parse(target)
+    except ValueError:
+        return None  # a pattern (the config reader refused anything else)
+    where = f"[[overlays]] target {target!r}"
+    if target.is_board:
+        names = [board.name for board in config.boards]
+        if target.name in names:
+            return None
+        close = difflib.get_close_matches(target.name, names, n=1)
+        hint = f"; did you mean board:{close[0]}?" if close else ""
+        known = f"boards: {', '.join(names)}" if names else "no [[boards]] are configured"
+        return f"{where} is never drawn: no such board ({known}{hint})"
+    marker_id, dictionary = target.marker_id, config.detector.dictionary
+    if marker_id >= dictionary_size(dictionary):
+        return f"{where} is never drawn: {dictionary} has ids 0 to {dictionary_size(dictionary) - 1}"
+    if not config.tracks_marker(marker_id):
+        tracked = ", ".join(map(str, config.markers.ids))
+        return f"{where} is never drawn: only markers {tracked} are tracked ([markers] ids)"
+    return None
 
 
 def _placement(overlay: OverlayConfig) -> np.ndarray:

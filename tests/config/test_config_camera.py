@@ -253,7 +253,7 @@ def test_to_yaml_from_yaml_round_trip(tmp_path, n_dist):
     # given a camera with off-centre principal point, skew-free K and seeded random distortion
     rng = np.random.default_rng(1234 + n_dist)
     matrix = np.array([[812.25, 0.0, 655.125], [0.0, 809.75, 371.5], [0.0, 0.0, 1.0]])
-    dist = rng.normal(0.0, 0.05, n_dist)
+    dist = rng.normal(0.0, 0.03, n_dist)  # 0.05 drew a tangential p2 of 0.086, which folds the image: refused
     camera = CameraModel(matrix, dist, 1296, 728)
     path = tmp_path / "cam.yml"
     # when written (with extra scalars, as a calibration tool would) and read back
