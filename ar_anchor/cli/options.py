@@ -4,6 +4,7 @@ overrides, and the camera scaled to the source."""
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import time
 from pathlib import Path
@@ -148,10 +149,13 @@ def default_out(name: str) -> Path:
 
 def load_tracker_config(args: argparse.Namespace, *, demo: bool = False):  # noqa: ANN202
     """``--config`` (or the built-in defaults; ``demo``: the demo scene's) with the command-line overrides."""
-    from ..config import ConfigValueError, load_config
+    from ..config import ConfigValueError, implausible_length_hint, load_config
     from ..errors import ConfigError
 
     config = load_config(args.config, demo=demo)
+    length = getattr(args, "marker_length", None)
+    if length is not None and (hint := implausible_length_hint(length, "--marker-length")):
+        logging.getLogger("ar_anchor.cli").warning(hint)
     try:
         return config.with_overrides(
             dictionary=getattr(args, "dictionary", None),

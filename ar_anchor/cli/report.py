@@ -89,7 +89,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         if fps
         else f"{summary['frames']} frames",
         f"markers found in {summary['frames_with_markers']} of {summary['frames']} frames, "
-        f"a pose in {summary['frames_with_pose']}",
+        f"a pose in {summary['frames_with_pose']}"
+        + (f" ({summary['dictionary_hint']})" if summary.get("dictionary_hint") else ""),
     ]
     truth = summary.get("ground_truth")
     header = f"{'target':<12} {'detected':>9} {'tracked/ambig/pred':>18}"

@@ -31,6 +31,7 @@ from ..render.overlay import OverlayRenderer
 from ..render.video import SUPPORTED_EXTENSIONS
 from ..sources.base import Frame, FrameSource, SourceInfo
 from ..track.tracker import FrameResult, Tracker
+from .hints import RunHints
 from .options import RunOptions
 from .outputs import prepare_out_dir
 from .run_outputs import RunOutputs
@@ -117,6 +118,7 @@ def run_session(
     options = options or RunOptions()
     renderer = _overlay_renderer(tracker, options)  # before any output exists: a bad model is a clean input error
     outputs = RunOutputs(prepare_out_dir(out_dir), options)
+    hints = RunHints(tracker.config)  # the wrong dictionary, a length in millimetres: said once, as it shows
     info = source.info
     status = "incomplete"
     start = time.perf_counter()
@@ -125,7 +127,7 @@ def run_session(
             feed = _FrameFeed(source, info, options)
             try:
                 outputs.open(tracker.camera, tracker.config.recording, info, renderer)
-                _track(feed, tracker, outputs, guard, options, progress)
+                _track(feed, tracker, outputs, guard, options, progress, hints)
             finally:
                 guard.hold()  # the closing is not interrupted: a signal now waits until the guard exits
                 feed.close()  # the decoding thread first: nothing reads the source any more
@@ -139,6 +141,7 @@ def run_session(
         raise
     finally:
         extras = summary_extras() if summary_extras is not None else {}
+        extras = {**hints.finish(probe=status == "completed"), **extras}
         summary = outputs.write_summary(status, time.perf_counter() - start, extras)
     return RunResult(
         outputs.out_dir, outputs.poses_csv, outputs.summary_json, outputs.recording_rrd, outputs.raw_video, summary
@@ -204,6 +207,7 @@ def _track(
     guard: _InterruptGuard,
     options: RunOptions,
     progress: Progress | None,
+    hints: RunHints,
 ) -> None:
     """Track each frame of ``feed`` and hand it to ``outputs``; a frame's outputs are written whole."""
     for frame, decode_ms in feed:
@@ -217,6 +221,7 @@ def _track(
         truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
         with guard.critical():
             outputs.write(frame, result, truth, stages)
+        hints.after_frame(frame, result)
         if progress is not None:
             progress(outputs.summary.frames, feed.total, result)
         if options.max_frames is not None and outputs.summary.frames >= options.max_frames:
