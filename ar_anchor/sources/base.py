@@ -67,16 +67,22 @@ class SourceInfo:
         loop neither reads ahead of it nor makes it wait for the outputs.
     fps : nominal frame rate (the container's, the one asked of a device or an image sequence's), None when unknown.
     frame_count : frames in the stream, None when unknown or endless (live).
+    frame_count_estimated : ``frame_count`` is the container's guess (duration x rate, as in MKV and WebM):
+        good for progress, no evidence that a stream which ends before it was damaged.
     video_path : a video file whose frame ``i`` is this source's frame ``i`` (a recording can reference it
         instead of holding the images); None otherwise.
-    ended_early : the stream stopped before its announced end (a damaged or truncated file).
+    ended_early : the stream stopped before its announced end (a damaged or truncated file, or a frame
+        size that changes mid-stream).
+    ended_because : why it stopped early, one line for the user ("" when it did not).
     """
 
     live: bool = False
     fps: float | None = None
     frame_count: int | None = None
+    frame_count_estimated: bool = False
     video_path: Path | None = None
     ended_early: bool = False
+    ended_because: str = ""
 
 
 @runtime_checkable

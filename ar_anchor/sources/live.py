@@ -13,6 +13,7 @@ from __future__ import annotations
 import collections
 import glob
 import logging
+import stat
 import threading
 import time
 from collections.abc import Iterator, Mapping
@@ -24,9 +25,10 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel
-from ..errors import SourceError
+from ..errors import SourceError, printable
 from ..geometry import Pose
 from .base import ClosingSource, Frame, SourceInfo
+from .checks import file_kind
 from .files import to_bgr8
 from .synthetic import SyntheticScene, SyntheticSource
 
@@ -277,10 +279,16 @@ class WebcamGrabber:
     def open(self) -> tuple[int, int]:
         """Open the device with the requested settings, record what it ``granted``; its (width, height) in pixels."""
         device = self.device
-        if isinstance(device, str) and not device.isdigit() and not Path(device).exists():
-            found = video_devices()
-            listing = ", ".join(found) if found else "there are none on this machine"
-            raise SourceError(f"{device}: no such video device (video devices: {listing})")
+        if isinstance(device, str) and not device.isdigit():
+            try:
+                mode: int | None = Path(device).stat().st_mode
+            except OSError:
+                mode = None
+            if mode is None or self.api == cv2.CAP_V4L2 and not (stat.S_ISCHR(mode) or stat.S_ISREG(mode)):
+                found = video_devices()
+                listing = ", ".join(found) if found else "there are none on this machine"
+                what = "no such video device" if mode is None else f"is {file_kind(mode)}, not a video device"
+                raise SourceError(f"{printable(device)}: {what} (video devices: {listing})")
         target: str | int = int(device) if isinstance(device, str) and device.isdigit() else device
         capture = cv2.VideoCapture(target, self.api)
         if not capture.isOpened():

@@ -20,22 +20,37 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, overload
 
 from ..camera import CameraModel
 from ..config import TrackerConfig, demo_config
+from ..errors import InputError, SourceError, printable
 from ..synthetic import SyntheticScene, Trajectory, demo_scene
 from .base import FrameSource
+from .checks import file_kind, in_range
 from .files import IMAGE_EXTENSIONS, ImageFolderSource, VideoFileSource
 from .live import Grabber, LiveSource, SyntheticGrabber, WebcamGrabber
 
-__all__ = ["SYNTHETIC", "DeviceSettings", "is_device", "live_demo_scene", "open_source"]
+__all__ = [
+    "LIVE_FPS_RANGE",
+    "MAX_DEVICE_SIDE",
+    "SYNTHETIC",
+    "DeviceSettings",
+    "is_device",
+    "live_demo_scene",
+    "open_source",
+]
 
 SYNTHETIC = "synthetic"  # the spec of the synthetic camera
 _GLOB_CHARS = re.compile(r"[*?\[]")
 _DEFAULT_FPS = 30.0  # image sequences and the synthetic camera, unless told otherwise
+LIVE_FPS_RANGE = (0.01, 1000.0)  # frame rates asked of a device or the synthetic camera: a frame per 100 s .. 1 kHz
+MAX_DEVICE_SIDE = 16384  # pixels: wider or taller than any capture device
+_MAX_WAIT_S = 86400.0  # reconnect and stall timeouts: a day at most
+_MAX_QUEUE = 1000  # frames waiting for the tracker at most (6 MB each at 1080p)
 
 
 @dataclass(frozen=True)
@@ -54,6 +69,21 @@ class DeviceSettings:
     reconnect_s: float = 5.0
     stall_s: float = 10.0
 
+    def __post_init__(self) -> None:
+        """Each setting range-checked; an :class:`~ar_anchor.errors.InputError` names its option."""
+        for option, side in (("--width", self.width), ("--height", self.height)):
+            if side is not None and not (isinstance(side, int) and 1 <= side <= MAX_DEVICE_SIDE):
+                raise InputError(f"{option}: must be a whole number of pixels in [1, {MAX_DEVICE_SIDE}], got {side}")
+        if self.fourcc is not None and not (
+            len(self.fourcc) == 4 and self.fourcc.isascii() and self.fourcc.isprintable()
+        ):
+            raise InputError(f"--fourcc: expected four characters such as MJPG or YUYV, got {self.fourcc!r}")
+        if not (isinstance(self.queue_size, int) and 1 <= self.queue_size <= _MAX_QUEUE):
+            raise InputError(f"--queue: must be in [1, {_MAX_QUEUE}] frames, got {self.queue_size}")
+        in_range("--reconnect-s", self.reconnect_s, 0.0, _MAX_WAIT_S, unit=" s")
+        if in_range("--stall-s", self.stall_s, 0.0, _MAX_WAIT_S, unit=" s") <= 0:
+            raise InputError(f"--stall-s: must be more than 0 s, got {self.stall_s:g}")
+
 
 def live_demo_scene(
     config: TrackerConfig | None = None,
@@ -63,7 +93,9 @@ def live_demo_scene(
     seed: int = 0,
 ) -> SyntheticScene:
     """The synthetic camera's scene: the demo scene (``config``'s targets, default the demo config) seen
-    by ``camera`` (default the synthetic camera) on a 20 s orbit at ``fps``."""
+    by ``camera`` (default the synthetic camera) on a 20 s orbit at ``fps`` (in :data:`LIVE_FPS_RANGE`, else an
+    :class:`~ar_anchor.errors.InputError` naming ``--fps``)."""
+    fps = in_range("--fps", fps, *LIVE_FPS_RANGE, unit=" fps")
     return demo_scene(
         config or demo_config(),
         camera or CameraModel.default_synthetic(),
@@ -123,12 +155,16 @@ def open_source(
     ``fps``: an image sequence's frame rate (default 30), the rate asked of a device (default: its own),
     or the default synthetic scene's (default 30). ``device``: what else to ask of a device.
     ``scene``: what the synthetic camera shows (default :func:`live_demo_scene`).
-    Raises :class:`~ar_anchor.errors.SourceError` naming the spec when it cannot be opened.
+    Raises :class:`~ar_anchor.errors.SourceError` naming the spec when it cannot be opened (a named pipe, a
+    socket or a device node where a file is due is said to be one), and an
+    :class:`~ar_anchor.errors.InputError` naming the option for a frame rate or device setting out of range.
     """
     if live is None:
         live = spec == SYNTHETIC or is_device(spec)
     if not live:
         return _open_path(os.fspath(spec), fps=_DEFAULT_FPS if fps is None else fps)
+    if fps is not None:
+        fps = in_range("--fps", fps, *LIVE_FPS_RANGE, unit=" fps")
     settings = device or DeviceSettings()
     grabber: Grabber
     if spec == SYNTHETIC:
@@ -151,6 +187,12 @@ def open_source(
 def _open_path(text: str, *, fps: float) -> VideoFileSource | ImageFolderSource:
     """A video file, an image folder, a glob of images, or a single image: the right source for it."""
     path = Path(text)
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        mode = None
+    if mode is not None and not (stat.S_ISDIR(mode) or stat.S_ISREG(mode)):
+        raise SourceError(f"{printable(text)}: is {file_kind(mode)}, not a video, an image or a folder")
     if path.is_dir() or _GLOB_CHARS.search(text) and not path.exists():
         return ImageFolderSource(text, fps=fps)
     if path.is_file() and path.suffix.lower() in IMAGE_EXTENSIONS:

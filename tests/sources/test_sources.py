@@ -348,7 +348,9 @@ def test_every_source_declares_what_it_is(tmp_path):
     ):
         assert all(isinstance(source, FrameSource) for source in (synthetic, video, image, live))
         assert synthetic.info == SourceInfo(fps=20.0, frame_count=5)
-        assert video.info == SourceInfo(fps=pytest.approx(25.0), frame_count=3, video_path=tmp_path / "clip.mkv")
+        assert video.info == SourceInfo(
+            fps=pytest.approx(25.0), frame_count=3, frame_count_estimated=True, video_path=tmp_path / "clip.mkv"
+        )
         assert image.info == SourceInfo(fps=5.0, frame_count=1)
         assert live.info == SourceInfo(live=True, fps=50.0)
 
