@@ -28,7 +28,13 @@ the same points (common random numbers across the grid).
 Modules: :mod:`.pnp` (the ``outliers`` and ``ransac`` experiments), :mod:`.jitter` (the
 ``jitter`` experiment), :mod:`.stats` (summary statistics they share), :mod:`.figures`
 (matplotlib), :mod:`.report` (Markdown), :mod:`.recording` (rerun), :mod:`.options` (the command
-line, checked) and :mod:`.command` (``ar-anchor study``: run, write the four files).
+line), :mod:`.limits` (the range of every number, checked before the first study runs), :mod:`.files`
+(``--out`` and the files written under partial names until complete), :mod:`.interrupt` (Ctrl-C and
+SIGTERM, never lost) and :mod:`.command` (``ar-anchor study``: run, write the four files).
+
+An interrupted or failed study leaves none of its four files: they are written as
+``.<name>.<pid>.partial.<suffix>`` (the recording as ``.<name>.rrd.<pid>.tmp``), renamed into place
+together once all are complete and removed otherwise; files of studies completed before stay.
 """
 
 from __future__ import annotations
