@@ -24,6 +24,7 @@ from pathlib import Path
 
 import av
 import numpy as np
+from av.video.reformatter import VideoReformatter
 
 from ..camera import CameraModel, opencv_path_problem
 from ..errors import SourceError, printable
@@ -133,6 +134,7 @@ class VideoFileSource(ClosingSource):
         self._time_base = stream.time_base.numerator / stream.time_base.denominator if stream.time_base else 0.0
         self._start = stream.start_time if stream.start_time is not None else 0
         self._damaged = False
+        self._reformatter = VideoReformatter()
         self._decoded = self._frames()
         first = next(self._decoded, None)
         if first is None:
@@ -180,7 +182,8 @@ class VideoFileSource(ClosingSource):
     def _image(self, frame: av.VideoFrame) -> np.ndarray:
         """BGR uint8, as OpenCV's FFmpeg backend converts it (bicubic swscale), turned upright by the display
         rotation the way OpenCV turns it."""
-        image = frame.to_ndarray(format="bgr24", interpolation="BICUBIC")
+        # one reformatter for the stream keeps its swscale context; one thread: the decoder has the others
+        image = self._reformatter.reformat(frame, format="bgr24", interpolation="BICUBIC", threads=1).to_ndarray()
         turns = round((frame.rotation or 0) / 90) % 4
         return np.ascontiguousarray(np.rot90(image, turns)) if turns else image
 

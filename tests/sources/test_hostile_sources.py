@@ -332,3 +332,52 @@ def test_live_with_an_absurd_fps_exits_2_naming_it(tmp_path, fps):
     assert_clean_exit(result)
     errors = error_lines(result.stderr)
     assert result.code == 2 and len(errors) == 1 and "--fps" in errors[0], result.describe()
+
+
+# ============================================================================ what did not change
+
+
+@pytest.mark.parametrize(
+    ("codec", "pix_fmt", "size", "colorspace", "rotation"),
+    [
+        ("libx264", "yuv420p", (1920, 1080), 1, 0),  # BT.709 HD, coded height 1088
+        ("libx264", "yuv420p10le", (322, 242), None, 0),
+        ("libx264", "yuv444p", (320, 240), None, 90),
+        ("ffv1", "gray16le", (320, 240), None, 0),
+        ("mjpeg", "yuvj422p", (320, 240), None, -90),
+    ],
+)
+def test_decoded_frames_and_times_are_those_opencv_gives(tmp_path, codec, pix_fmt, size, colorspace, rotation):
+    # given a short clip in one of the formats cameras and tools write
+    path = tmp_path / ("clip.mp4" if codec != "ffv1" else "clip.mkv")
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur((rng.random((size[1], size[0], 3)) * 255).astype(np.uint8), (0, 0), 2)
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream(codec, rate=30)
+        stream.width, stream.height = size
+        stream.pix_fmt = pix_fmt
+        if colorspace is not None:
+            stream.codec_context.colorspace = colorspace
+        if rotation:
+            stream.set_display_rotation(rotation)
+        for index in range(4):
+            for packet in stream.encode(av.VideoFrame.from_ndarray(np.roll(texture, 5 * index, 1), format="bgr24")):
+                out.mux(packet)
+        for packet in stream.encode(None):
+            out.mux(packet)
+    # when both read it
+    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    expected, positions = [], []
+    while True:
+        ok, image = capture.read()
+        if not ok:
+            break
+        expected.append(image)
+        positions.append(capture.get(cv2.CAP_PROP_POS_MSEC))
+    capture.release()
+    with VideoFileSource(path) as source:
+        frames = list(source)
+    # then the pixels (conversion, rotation) and timestamps are OpenCV's, bit for bit
+    assert len(frames) == len(expected) == 4
+    assert all(np.array_equal(frame.image, image) for frame, image in zip(frames, expected))
+    assert [f.timestamp_ns for f in frames] == [int(round((ms - positions[0]) * 1e6)) for ms in positions]
