@@ -85,6 +85,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     options = RunOptions(
         max_frames=args.max_frames,
         spawn=args.spawn,
+        connect=args.connect,
         recording_name="ar_anchor demo",
         video_out=args.video_out,
         overlays=not args.no_overlay,

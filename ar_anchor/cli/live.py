@@ -17,7 +17,6 @@ from .options import (
     load_tracker_config,
     non_negative_float,
     positive_float,
-    viewer_url,
 )
 from .report import LiveStatus, finish
 
@@ -66,16 +65,7 @@ def add_parser(commands: Any) -> None:
         action="store_true",
         help="also save the processed frames losslessly (raw.mkv + timestamps) for frame-exact replay",
     )
-    add_run_options(live, "live", spawn=False)
-    viewer = live.add_mutually_exclusive_group()
-    viewer.add_argument("--spawn", action="store_true", help="start a rerun viewer and stream to it")
-    viewer.add_argument(
-        "--connect",
-        metavar="URL",
-        type=viewer_url,
-        default=None,
-        help="stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
-    )
+    add_run_options(live, "live")
     live.set_defaults(func=cmd_live)
 
 

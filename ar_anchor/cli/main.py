@@ -1,30 +1,40 @@
 """``ar-anchor``: the command-line front. Each command lives in its own module (demo, replay, live, bench,
 tools) with its options (``add_parser``) and its function; this one builds the parser and maps errors to
 exit codes: 0 success; 1 run-time failure (outputs written so far stay valid); 2 bad input or usage
-(config, camera file, option); 130 interrupted (Ctrl-C)."""
+(config, camera file, option); 130 interrupted (Ctrl-C, SIGTERM).
+
+The terminal is guarded before anything heavy is imported: this module imports the standard library
+only, and :func:`main` installs its SIGINT/SIGTERM handling first thing (:mod:`.terminal`). Until the
+command starts, a signal ends the process at once with one line (nothing has been written yet: the
+imports of OpenCV, numpy and rerun are never cut halfway, which once turned Ctrl-C into "OpenCV
+bindings requires numpy" or swallowed it); while the command runs it is a ``KeyboardInterrupt``,
+which the run loop turns into closed outputs, and this module into exit code 130.
+"""
 
 from __future__ import annotations
 
-import argparse
-import logging
-import os
-import signal
 import sys
-from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-from .. import __version__
-from ..errors import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, ArAnchorError, InputError
-from . import bench, demo, live, replay, tools
-from .options import add_common_options
-from .report import format_summary
+from ..errors import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, ArAnchorError, InputError, printable
+from . import terminal
 
-__all__ = ["build_parser", "format_summary", "main"]
+if TYPE_CHECKING:
+    import argparse
+    import logging
+    from collections.abc import Sequence
 
-log = logging.getLogger("ar_anchor")
+__all__ = ["build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``ar-anchor`` parser: the common options and every command's subparser."""
+    import argparse
+
+    from .. import __version__
+    from . import bench, demo, live, replay, tools
+    from .options import add_common_options
+
     parser = argparse.ArgumentParser(
         prog="ar-anchor",
         description="Real-time fiducial-marker AR tracker (ArUco + IPPE + rerun).",
@@ -39,26 +49,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _escaped_message(record: logging.LogRecord) -> bool:
+    """A logging filter: the message escaped (:func:`~ar_anchor.errors.printable`), so that a file name holding
+    a newline or an ANSI escape is shown, not obeyed (a -vv traceback below it stays as it is)."""
+    record.msg, record.args = printable(record.getMessage()), None
+    return True
+
+
 def _setup_logging(verbosity: int) -> None:
+    import logging
+
     level = logging.WARNING if verbosity == 0 else logging.INFO if verbosity == 1 else logging.DEBUG
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("ar-anchor: %(levelname)s: %(message)s"))
+    handler.addFilter(_escaped_message)
     root = logging.getLogger("ar_anchor")
     root.handlers[:] = [handler]
     root.setLevel(level)
     root.propagate = False
-
-
-def _interrupt_on_sigterm() -> None:
-    """SIGTERM ends a run like Ctrl-C: outputs are closed and stay valid."""
-
-    def handler(signum: int, _frame: object) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    try:
-        signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread (embedded use): leave signals alone
-        pass
 
 
 def _steady_malloc() -> None:
@@ -79,46 +87,70 @@ def _steady_malloc() -> None:
         pass
 
 
-def _quiet_opencv(verbosity: int) -> None:
-    """OpenCV, FFmpeg and rerun print their own warnings to stderr; ours say what matters, in one line.
-    Theirs show with -vv."""
-    if verbosity >= 2:
-        return
-    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET, read when a capture opens
-    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
-    # rerun's own (Rust) log lines, e.g. a file sink that hit a full disk: the error we raise names the file
-    os.environ.setdefault("RUST_LOG", "off")
-    import cv2
+def _preload(command: str | None) -> None:
+    """Import what ``command`` needs (OpenCV, numpy, rerun, ...) now, while a signal still ends the process
+    at once. A module that fails to import is left to the command, which reports it in its own words."""
+    try:
+        if command in ("demo", "replay", "live", "bench"):
+            from ..run import loop  # noqa: F401
+        elif command == "calibrate":
+            from ..tools import calibrate  # noqa: F401
+        elif command == "markers":
+            from ..tools import markers  # noqa: F401
+        elif command == "study":
+            from ..tools.study import command as study  # noqa: F401
+    except Exception:  # noqa: BLE001 - raised again, and reported, where the command imports it
+        import logging
 
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        logging.getLogger("ar_anchor").debug("preloading for %s failed", command, exc_info=True)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command in ``argv`` (default ``sys.argv``); errors become one line on stderr and an exit code."""
-    _interrupt_on_sigterm()
-    _steady_malloc()
+def _run_command(argv: Sequence[str] | None, signals: terminal.Signals) -> int:
+    """Parse ``argv`` and run its command; errors become one line on stderr and an exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
-    _quiet_opencv(args.verbose)
+    terminal.quiet_libraries(args.verbose)
+    _preload(args.command)
     try:
-        return int(args.func(args))
+        signals.running()  # from now on a signal is a KeyboardInterrupt: the run closes its outputs
+        try:
+            if getattr(args, "connect", None):
+                from ..viz.viewer import require_viewer
+
+                require_viewer(args.connect, "--connect")
+            return int(args.func(args))
+        finally:
+            signals.finishing()
     except InputError as err:
-        print(f"ar-anchor: error: {err}", file=sys.stderr)
+        print(f"ar-anchor: error: {printable(err)}", file=sys.stderr)
         return EXIT_USAGE
     except ArAnchorError as err:
-        print(f"ar-anchor: error: {err}", file=sys.stderr)
+        print(f"ar-anchor: error: {printable(err)}", file=sys.stderr)
         return EXIT_FAILURE
-    except KeyboardInterrupt:
-        print("ar-anchor: interrupted; outputs written so far are complete", file=sys.stderr)
+    except KeyboardInterrupt as err:
+        print(f"ar-anchor: interrupted; {terminal.interrupted_outputs(err)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as err:  # a bug: say so in one line, show the traceback only when asked
-        log.debug("internal error", exc_info=True)
+        import logging
+
+        logging.getLogger("ar_anchor").debug("internal error", exc_info=True)
         print(
-            f"ar-anchor: internal error: {type(err).__name__}: {err} (rerun with -vv for the traceback)",
+            f"ar-anchor: internal error: {type(err).__name__}: {printable(err)} (rerun with -vv for the traceback)",
             file=sys.stderr,
         )
         return EXIT_FAILURE
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command in ``argv`` (default ``sys.argv``); errors become one line on stderr and an exit code.
+
+    Signals are handled first of all; stdout that cannot be written (a reader gone, a full device, an
+    encoding without the character) is given up quietly, and the run keeps its own exit code."""
+    with terminal.Signals() as signals, terminal.guarded_stdout(), terminal.warnings_to_log():
+        _steady_malloc()
+        terminal.quiet_libraries_early()
+        return _run_command(argv, signals)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -119,7 +119,27 @@ def add_run_options(parser: argparse.ArgumentParser, name: str, *, spawn: bool =
         help="do not draw overlays into the recording (faster); --video-out still does",
     )
     if spawn:
-        parser.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer it starts")
+        add_viewer_options(parser)
+
+
+def add_viewer_options(parser: argparse.ArgumentParser) -> None:
+    """--spawn (a viewer of this run's own) or --connect [URL] (a running one, checked before the run)."""
+    viewer = parser.add_mutually_exclusive_group()
+    viewer.add_argument(
+        "--spawn",
+        action="store_true",
+        help="also stream to a rerun viewer it starts (its own, on a free port: a running viewer is not reused)",
+    )
+    viewer.add_argument(
+        "--connect",
+        metavar="URL",
+        nargs="?",
+        type=viewer_url,
+        const="rerun+http://127.0.0.1:9876/proxy",
+        default=None,
+        help="stream to a running viewer (default rerun+http://127.0.0.1:9876/proxy, the local one); "
+        "the run does not start when none listens there",
+    )
 
 
 def add_tracker_options(parser: argparse.ArgumentParser) -> None:

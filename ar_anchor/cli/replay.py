@@ -77,6 +77,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         options = RunOptions(
             max_frames=args.max_frames,
             spawn=args.spawn,
+            connect=args.connect,
             recording_name=f"ar_anchor replay {args.source}",
             video_out=args.video_out,
             overlays=not args.no_overlay,

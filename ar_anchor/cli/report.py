@@ -8,7 +8,7 @@ import sys
 import time
 from typing import Any
 
-from ..errors import EXIT_FAILURE, EXIT_OK
+from ..errors import EXIT_FAILURE, EXIT_OK, printable
 
 
 class Progress:
@@ -69,14 +69,15 @@ class LiveStatus:
 
 
 def finish(args: argparse.Namespace, outputs: Any) -> int:
-    """Print the run's summary (unless -q) and its output files; the exit code (0 when the run completed)."""
+    """Print the run's summary (unless -q) and its output files (names escaped: :func:`~ar_anchor.errors.printable`);
+    the exit code (0 when the run completed)."""
     if not args.quiet:
         print(format_summary(outputs.summary))
     files = "poses.csv, summary.json, recording.rrd" + (", raw.mkv" if outputs.raw_video else "")
-    print(f"outputs: {outputs.out_dir}/ ({files})")
+    print(f"outputs: {printable(outputs.out_dir)}/ ({files})")
     video = outputs.summary.get("video_out")
     if video:
-        print(f"annotated video: {video['path']} ({video['frames']} frames)")
+        print(f"annotated video: {printable(video['path'])} ({video['frames']} frames)")
     status = outputs.summary.get("status")
     return EXIT_OK if status == "completed" else EXIT_FAILURE
 
@@ -101,7 +102,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     for name, entry in summary["targets"].items():
         states = entry.get("states", {})
         state_text = f"{states.get('tracked', 0)}/{states.get('ambiguous', 0)}/{states.get('predicted', 0)}"
-        row = f"{name:<12} {entry['frames_measured']:>9} {state_text:>18}"
+        row = f"{printable(name):<12} {entry['frames_measured']:>9} {state_text:>18}"
         if truth:
             rate = entry.get("detection_rate_in_view")
             rot, trans = entry["rotation_error_deg"], entry["translation_error_pct"]

@@ -8,16 +8,15 @@ says how the run ended (``status``).
 
 A run, step by step: check the options that could fail before any output exists (overlay models,
 ``--video-out``), create ``out_dir``; then, with Ctrl-C and SIGTERM held off while a frame's outputs
-are written (:class:`_InterruptGuard`): open the outputs, track every frame (:func:`_track`), stop
-reading ahead, close the outputs; last, write ``summary.json``.
+are written (:class:`~.interrupts.InterruptGuard`): open the outputs, track every frame (:func:`_track`), stop
+reading ahead, close the outputs; last, write ``summary.json``. A second Ctrl-C while the outputs close
+ends the process at once (exit 130): ``summary.json`` written, the outputs still closing named.
 """
 
 from __future__ import annotations
 
 import os
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -32,6 +31,7 @@ from ..render.video import SUPPORTED_EXTENSIONS
 from ..sources.base import Frame, FrameSource, SourceInfo
 from ..track.tracker import FrameResult, Tracker
 from .hints import RunHints
+from .interrupts import InterruptGuard
 from .options import RunOptions
 from .outputs import prepare_out_dir
 from .run_outputs import RunOutputs
@@ -40,53 +40,6 @@ from .threads import Prefetcher
 __all__ = ["RunResult", "run_session"]
 
 Progress = Callable[[int, int | None, FrameResult], Any]
-
-
-class _InterruptGuard:
-    """Turns SIGINT/SIGTERM into KeyboardInterrupt, but never in the middle of writing one frame's
-    outputs: a signal that arrives there is held until the frame is complete, so ``poses.csv``,
-    the recording and ``summary.json`` always agree on the last frame. Main thread only; elsewhere
-    it does nothing."""
-
-    def __init__(self) -> None:
-        self._previous: dict[int, Any] = {}
-        self._critical = False
-        self._pending: int | None = None
-
-    def __enter__(self) -> _InterruptGuard:
-        if threading.current_thread() is threading.main_thread():
-            for signum in (signal.SIGINT, signal.SIGTERM):
-                self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        if self._pending is not None and exc_type is None:
-            signum, self._pending = self._pending, None
-            raise KeyboardInterrupt(f"signal {signum}")
-
-    def hold(self) -> None:
-        """From now on (closing the outputs), hold signals until the guard exits: a late Ctrl-C must not
-        cut the flush of a recording or the last frames of a video."""
-        self._critical = True
-
-    def _handle(self, signum: int, _frame: object) -> None:
-        if self._critical:
-            self._pending = signum
-            return
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    @contextmanager
-    def critical(self) -> Iterator[None]:
-        self._critical = True
-        try:
-            yield
-        finally:
-            self._critical = False
-        if self._pending is not None:
-            signum, self._pending = self._pending, None
-            raise KeyboardInterrupt(f"signal {signum}")
 
 
 @dataclass(frozen=True)
@@ -123,7 +76,8 @@ def run_session(
     status = "incomplete"
     start = time.perf_counter()
     try:
-        with _InterruptGuard() as guard, _quick_gil_handover(info.live):
+        abandon = lambda: _abandon(outputs, options, time.perf_counter() - start, summary_extras)  # noqa: E731
+        with InterruptGuard(abandon) as guard, _quick_gil_handover(info.live):
             feed = _FrameFeed(source, info, options)
             try:
                 outputs.open(tracker.camera, tracker.config.recording, info, renderer)
@@ -146,6 +100,25 @@ def run_session(
     return RunResult(
         outputs.out_dir, outputs.poses_csv, outputs.summary_json, outputs.recording_rrd, outputs.raw_video, summary
     )
+
+
+def _abandon(
+    outputs: RunOutputs,
+    options: RunOptions,
+    wall_time_s: float,
+    summary_extras: Callable[[], dict[str, Any]] | None,
+) -> list[str]:
+    """A second Ctrl-C cut the closing short: ``summary.json`` is written now (status ``interrupted``,
+    naming what may be incomplete). ``poses.csv`` is flushed after every frame, so it is complete; the
+    outputs still closing may not be: their names."""
+    incomplete = [outputs.recording_rrd.name]
+    if options.video_out is not None:
+        incomplete.append(str(options.video_out))
+    if outputs.raw_video is not None:
+        incomplete.append(outputs.raw_video.name)
+    extras = summary_extras() if summary_extras is not None else {}
+    outputs.write_summary("interrupted", wall_time_s, {**extras, "closing_cut_short": incomplete})
+    return incomplete
 
 
 def _overlay_renderer(tracker: Tracker, options: RunOptions) -> OverlayRenderer | None:
@@ -204,7 +177,7 @@ def _track(
     feed: _FrameFeed,
     tracker: Tracker,
     outputs: RunOutputs,
-    guard: _InterruptGuard,
+    guard: InterruptGuard,
     options: RunOptions,
     progress: Progress | None,
     hints: RunHints,

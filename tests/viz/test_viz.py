@@ -227,8 +227,4 @@ def test_no_viewer_is_spawned_without_a_display(monkeypatch):
     assert viewer.spawn_local_viewer() is None
 
 
-def test_a_viewer_already_listening_is_reused(monkeypatch):
-    monkeypatch.setenv("DISPLAY", ":0")
-    monkeypatch.setattr(viewer, "_listening", lambda host, port: True)
-    monkeypatch.setattr(viewer.subprocess, "Popen", lambda *a, **k: pytest.fail("started a second viewer"))
-    assert viewer.spawn_local_viewer() == f"rerun+http://127.0.0.1:{viewer.VIEWER_PORT}/proxy"
+# a viewer already listening is not reused by --spawn: tests/viz/test_viewer_connect.py
