@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import array
 import csv
+import errno
+import io
 import json
 import math
 import os
@@ -18,17 +20,22 @@ from typing import IO, Any
 
 import numpy as np
 
-from ..errors import InputError, OutputError
+from ..errors import InputError, OutputError, printable
 from ..geometry import Pose, pose_errors
 from ..targets import TargetId, TrackState
 from ..track.tracker import FrameResult
 
 __all__ = [
     "POSES_CSV_HEADER",
+    "DiskFullError",
     "PosesCsvWriter",
     "RawVideoWriter",
     "RunSummary",
+    "SummaryFile",
+    "WholeLinesFile",
+    "is_disk_full",
     "prepare_out_dir",
+    "write_failure",
     "write_json_atomic",
 ]
 
@@ -68,21 +75,104 @@ def _pose_cells(pose: Pose | None) -> list[str]:
     return [_num(v) for v in (*pose.rvec, *pose.tvec)]
 
 
-class PosesCsvWriter:
-    """Writes ``poses.csv`` exactly as DESIGN.md specifies; flushed after each frame."""
+def is_disk_full(err: BaseException) -> bool:
+    """Is ``err`` (or one it was raised from) a full disk or an exhausted quota (ENOSPC, EDQUOT)?"""
+    seen: BaseException | None = err
+    for _depth in range(8):
+        if seen is None:
+            return False
+        if isinstance(seen, OSError) and seen.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if isinstance(seen, DiskFullError) or "No space left on device" in str(seen):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
+class DiskFullError(OutputError):
+    """An output could not be written because the disk (or the quota) is full; ``path``: that file."""
+
+    def __init__(self, message: str, path: Path) -> None:
+        super().__init__(message)
+        self.path = path
+
+
+def write_failure(path: Path, err: OSError, what: str = "cannot write") -> OutputError:
+    """The error for ``path`` failing with ``err``: a :class:`DiskFullError` that says so when the disk is full."""
+    if is_disk_full(err):
+        return DiskFullError(f"{printable(path)}: {what}: the disk is full ({err.strerror or err})", path)
+    return OutputError(f"{printable(path)}: {what} ({err.strerror or err})")
+
+
+class WholeLinesFile:
+    """A text file written in whole lines only: each :meth:`write` goes to the disk at once (no buffer), and a
+    write the disk cuts short (full disk) is truncated away, so the file always ends on a complete line."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         try:
-            self._file: IO[str] | None = open(self.path, "w", newline="", encoding="utf-8")  # noqa: SIM115
+            self._file: IO[bytes] | None = open(self.path, "wb", buffering=0)  # noqa: SIM115
         except OSError as err:
-            raise OutputError(f"{self.path}: cannot write ({err.strerror})") from err
-        self._writer = csv.writer(self._file, lineterminator="\n")
+            raise write_failure(self.path, err) from err
+        self.size = 0  # bytes of whole lines written
+        self.failure: OutputError | None = None
+
+    def write(self, text: str) -> None:
+        """Append ``text`` (whole lines), or raise the :class:`OutputError` that cut it (the lines before stay)."""
+        if self.failure is not None:
+            raise self.failure
+        if self._file is None:
+            raise OutputError(f"{printable(self.path)}: already closed")
+        data = text.encode("utf-8")
+        view = memoryview(data)
+        try:
+            while view:
+                view = view[self._file.write(view) :]
+        except OSError as err:
+            self.failure = write_failure(self.path, err)
+            self._truncate()
+            raise self.failure from err
+        self.size += len(data)
+
+    def _truncate(self) -> None:
+        """Cut the file back to its whole lines (frees the space a cut line took, even on a full disk)."""
+        if self._file is not None:
+            try:
+                os.ftruncate(self._file.fileno(), self.size)
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        """Close (idempotent); a file a write failed on is cut back to its whole lines first."""
+        if self._file is not None:
+            if self.failure is not None:
+                self._truncate()
+            self._file.close()
+            self._file = None
+
+
+class PosesCsvWriter:
+    """Writes ``poses.csv`` exactly as DESIGN.md specifies; each frame's rows reach the file at once, whole
+    (:class:`WholeLinesFile`: a full disk leaves the rows of the frames before, never half a row)."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self._file: WholeLinesFile | None = WholeLinesFile(self.path)
+        self._buffer = io.StringIO()
+        self._writer = csv.writer(self._buffer, lineterminator="\n")
         self._writer.writerow(POSES_CSV_HEADER)
+        self._commit()
         self.rows = 0
 
+    def _commit(self) -> None:
+        assert self._file is not None
+        text = self._buffer.getvalue()
+        self._buffer.seek(0)
+        self._buffer.truncate()
+        self._file.write(text)
+
     def write(self, result: FrameResult) -> None:
-        """One row per target of ``result`` (filtered and raw ``camera_from_target``), then flush."""
+        """One row per target of ``result`` (filtered and raw ``camera_from_target``), written at once."""
         if self._file is None:
             raise OutputError(f"{self.path}: already closed")
         timestamp = f"{result.timestamp_ns * 1e-9:.9f}"
@@ -99,13 +189,11 @@ class PosesCsvWriter:
                     _num(target.ambiguity),
                 ]
             )
-            self.rows += 1
-        try:
-            self._file.flush()
-        except OSError as err:
-            raise OutputError(f"{self.path}: write failed ({err.strerror})") from err
+        self._commit()
+        self.rows += len(result.targets)
 
     def close(self) -> None:
+        """Close the file (it ends on the last whole row)."""
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -137,12 +225,8 @@ class RawVideoWriter:
         self.timestamps_path = self.path.with_name(self.path.name + ".timestamps.csv")
         self._writer = None
         self._size: tuple[int, int] | None = None
-        try:
-            self._csv_file: IO[str] | None = open(self.timestamps_path, "w", newline="", encoding="utf-8")  # noqa: SIM115
-        except OSError as err:
-            raise OutputError(f"{self.timestamps_path}: cannot write ({err.strerror})") from err
-        self._csv = csv.writer(self._csv_file, lineterminator="\n")
-        self._csv.writerow(["frame", "timestamp_ns"])
+        self._csv_file: WholeLinesFile | None = WholeLinesFile(self.timestamps_path)
+        self._csv_file.write("frame,timestamp_ns\n")
         self.frames = 0
 
     def write(self, image: np.ndarray, index: int, timestamp_ns: int) -> None:
@@ -162,8 +246,7 @@ class RawVideoWriter:
             )
         self._writer.write(image)
         assert self._csv_file is not None
-        self._csv.writerow([index, timestamp_ns])
-        self._csv_file.flush()
+        self._csv_file.write(f"{int(index)},{int(timestamp_ns)}\n")
         self.frames += 1
 
     def close(self) -> None:
@@ -176,14 +259,87 @@ class RawVideoWriter:
 
 
 def write_json_atomic(path: str | os.PathLike[str], data: Mapping[str, Any]) -> None:
-    """Write JSON to ``path`` via a temporary file and rename (never a half-written file)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
+    """Write JSON to ``path`` via a temporary file and rename (never a half-written file, no temporary left)."""
+    SummaryFile(path, reserve=0).write(data)
+
+
+class SummaryFile:
+    """``summary.json``, replaced atomically, with room for it set aside up front.
+
+    :meth:`reserve` allocates ``<name>.tmp`` (``reserve`` bytes) while the disk has room; :meth:`write` writes
+    the JSON into those blocks and renames it over ``summary.json``, so a disk that filled during the run
+    cannot leave it empty or missing: either the new content or the previous one is there. Part of the
+    reservation (``slack``) can be given back early (:meth:`release_slack`) for other files to finish in
+    (a recording's footer, the last rows). The temporary file is never left behind after :meth:`write`.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, reserve: int = 128 * 1024, slack: int = 0) -> None:
+        self.path = Path(path)
+        self.tmp = self.path.with_name(self.path.name + ".tmp")
+        self._reserve = reserve
+        self._slack = slack
+        self.reserved = 0
+
+    def reserve(self) -> None:
+        """Allocate the temporary file's room now (a disk already full: :class:`DiskFullError`)."""
+        size = self._reserve + self._slack
+        if size <= 0:
+            return
+        try:
+            fd = os.open(self.tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+            try:
+                _allocate(fd, size)
+            finally:
+                os.close(fd)
+        except OSError as err:
+            self.tmp.unlink(missing_ok=True)
+            raise write_failure(self.path, err, "cannot set aside room for it") from err
+        self.reserved = size
+
+    def release_slack(self) -> None:
+        """Give back the slack (keep the room the summary itself needs)."""
+        if self.reserved > self._reserve:
+            try:
+                os.truncate(self.tmp, self._reserve)
+                self.reserved = self._reserve
+            except OSError:
+                pass
+
+    def write(self, data: Mapping[str, Any]) -> None:
+        """Write ``data`` as JSON into the reserved file (or a new one) and rename it over ``summary.json``."""
+        text = (json.dumps(data, indent=2, allow_nan=False) + "\n").encode("utf-8")
+        try:
+            fd = os.open(self.tmp, os.O_WRONLY | os.O_CREAT | (0 if self.reserved else os.O_TRUNC), 0o666)
+            try:
+                view = memoryview(text)
+                while view:
+                    view = view[os.write(fd, view) :]
+                os.ftruncate(fd, len(text))
+            finally:
+                os.close(fd)
+            os.replace(self.tmp, self.path)
+        except OSError as err:
+            self.tmp.unlink(missing_ok=True)
+            raise write_failure(self.path, err) from err
+        finally:
+            self.reserved = 0
+
+    def discard(self) -> None:
+        """Remove the reserved temporary file (the summary is not going to be written)."""
+        if self.reserved:
+            self.tmp.unlink(missing_ok=True)
+            self.reserved = 0
+
+
+def _allocate(fd: int, size: int) -> None:
+    """Allocate ``size`` bytes of disk for ``fd`` (posix_fallocate, or zeros where it is not supported)."""
     try:
-        tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        os.replace(tmp, path)
-    except OSError as err:
-        raise OutputError(f"{path}: cannot write ({err.strerror})") from err
+        os.posix_fallocate(fd, 0, size)
+        return
+    except (AttributeError, OSError) as err:
+        if isinstance(err, OSError) and err.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+            raise
+    os.write(fd, bytes(size))
 
 
 def _percentiles(values: Sequence[float]) -> dict[str, float | None]:

@@ -18,6 +18,13 @@ logs each tracked frame behind the tracker (:class:`~.threads.OutputStage`).
 ended, and how many frames reached the video and the recording, which only the closed outputs know.
 An output that fails to open leaves those opened before it to :meth:`~RunOutputs.close`; the summary
 is still written.
+
+A full disk: the outputs are made so that it loses nothing already written. The output directory is locked
+for the run (:class:`~.paths.OutDirLock`) and ``summary.json`` is written at once (status ``running``), with
+room for the final one set aside (:class:`~.outputs.SummaryFile`) and some slack given back at the first
+file the disk refuses, for the others to finish in (the recording's footer). ``poses.csv`` keeps whole rows.
+The error raised is the first file that could not be written (:class:`~.outputs.DiskFullError`), with the
+files left incomplete; ``summary.json`` lists them (``incomplete``).
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ from typing import Any
 
 from ..camera import CameraModel
 from ..config import RecordingConfig
+from ..errors import OutputError
 from ..geometry import Pose
 from ..render.overlay import OverlayRenderer
 from ..render.video import AnnotatedVideoWriter
@@ -37,12 +45,16 @@ from ..sources.base import Frame, SourceInfo
 from ..track.tracker import FrameResult
 from ..viz.recorder import RerunRecorder
 from .options import RunOptions
-from .outputs import PosesCsvWriter, RawVideoWriter, RunSummary, write_json_atomic
+from .outputs import DiskFullError, PosesCsvWriter, RawVideoWriter, RunSummary, SummaryFile, is_disk_full
+from .paths import OutDirLock
 from .threads import OutputStage
 
 __all__ = ["RunOutputs", "close_in_order"]
 
 log = logging.getLogger(__name__)
+
+_SUMMARY_ROOM = 128 * 1024  # bytes set aside for summary.json (a run of hundreds of targets fits)
+_SLACK = 384 * 1024  # and given back at the first full-disk error, for the other files to finish
 
 
 def close_in_order(steps: Sequence[Callable[[], object]]) -> None:
@@ -75,6 +87,17 @@ class RunOutputs:
         self.summary = RunSummary()
         self.image_logging = "none"  # how the recording holds the images: none, jpeg or video_asset
         self._options = options
+        self._first_failure: DiskFullError | None = None  # the first file a full disk refused
+        self._incomplete: list[str] = []  # files a full disk left incomplete
+        self._lock = OutDirLock(out_dir)
+        self._lock.acquire()
+        self._summary_file = SummaryFile(self.summary_json, reserve=_SUMMARY_ROOM, slack=_SLACK)
+        try:  # a summary at once (an interrupted run's directory never shows the previous run's), and room
+            self._summary_file.write(self.summary.as_dict(0.0, status="running", **options.extra_summary))
+            self._summary_file.reserve()
+        except BaseException:
+            self._lock.release()
+            raise
         self._live = False
         self._renderer: OverlayRenderer | None = None
         self._recorder: RerunRecorder | None = None
@@ -130,11 +153,28 @@ class RunOutputs:
         the output thread has no room for is not drawn or logged (the tracker never waits for it),
         unless ``--video-out`` asks for a video of every tracked frame."""
         assert self._csv is not None and self._stage is not None, "open() the outputs first"
-        if self._raw is not None:
-            self._raw.write(frame.image, frame.index, frame.timestamp_ns)
-        self._csv.write(result)
-        self.summary.add(result, truth, stages)
-        self._stage.submit(frame, result, stages, block=not self._live or self._video is not None)
+        try:
+            if self._raw is not None:
+                self._raw.write(frame.image, frame.index, frame.timestamp_ns)
+            self._csv.write(result)
+            self.summary.add(result, truth, stages)
+            self._stage.submit(frame, result, stages, block=not self._live or self._video is not None)
+        except OutputError as err:
+            raise self._first(err) from None
+
+    def _first(self, err: OutputError, path: Path | None = None) -> OutputError:
+        """What to raise for ``err``: the first full-disk failure of the run once there was one (recorded now
+        if ``err`` is it; ``path``: the file it is about, when ``err`` does not say), else ``err``."""
+        if is_disk_full(err):
+            if self._first_failure is None:
+                where = getattr(err, "path", None) or path
+                self._first_failure = err if isinstance(err, DiskFullError) else DiskFullError(str(err), where)
+                self._summary_file.release_slack()  # room for the other files to finish in
+            elif err is not self._first_failure:
+                where = getattr(err, "path", None) or path
+                if where is not None and where.name not in self._incomplete:
+                    self._incomplete.append(where.name)
+        return self._first_failure or err
 
     def _draw_and_log(self, frame: Frame, result: FrameResult, stages: dict[str, float]) -> dict[str, float]:
         """The overlay, ``--video-out`` and the rerun log of one frame (in the output thread)."""
@@ -156,15 +196,29 @@ class RunOutputs:
     # ------------------------------------------------------------------ closing
     def close(self) -> None:
         """Close every output that is open, in the module doc's order; idempotent."""
-        close_in_order(
-            [
-                self._stop_output_thread,
-                self._close_annotated_video,
-                self._close_raw_video,
-                self._close_poses_csv,
-                self._close_recording,
-            ]
-        )
+        try:
+            close_in_order(
+                [
+                    self._stop_output_thread,
+                    self._close_annotated_video,
+                    self._close_raw_video,
+                    self._close_poses_csv,
+                    self._close_recording,
+                ]
+            )
+        except OutputError as err:
+            raise self._first(err) from None
+        if self._first_failure is not None:
+            raise self._first_failure
+
+    def _failure_message(self) -> DiskFullError:
+        """The first full-disk failure, naming the files it left incomplete."""
+        first = self._first_failure
+        assert first is not None
+        others = [name for name in self._incomplete if name != first.path.name]
+        if not others:
+            return first
+        return DiskFullError(f"{first}; also incomplete: {', '.join(others)}", first.path)
 
     def _stop_output_thread(self) -> None:
         if self._stage is not None and self._stage_open:
@@ -175,7 +229,10 @@ class RunOutputs:
         if self._video is not None:
             video, self._video = self._video, None
             self._video_frames = video.frames
-            video.close()
+            try:
+                video.close()
+            except OutputError as err:
+                raise self._first(err, Path(video.path)) from None
 
     def _close_raw_video(self) -> None:
         if self._raw is not None:
@@ -191,7 +248,10 @@ class RunOutputs:
         if self._recorder is not None:
             recorder, self._recorder = self._recorder, None
             self._recording_parts = [part.name for part in recorder.parts]
-            recorder.close()
+            try:
+                recorder.close()
+            except OutputError as err:
+                raise self._first(err, recorder.parts[-1] if recorder.parts else None) from None
 
     def write_summary(self, status: str, wall_time_s: float, extras: Mapping[str, Any]) -> dict[str, Any]:
         """Write ``summary.json`` (after :meth:`close`) and return it: the statistics, ``status`` (how the
@@ -212,7 +272,16 @@ class RunOutputs:
                     "never makes the tracker wait); they are in poses.csv",
                     self._stage.skipped,
                 )
+        if self._first_failure is not None:
+            counts["incomplete"] = [self._first_failure.path.name, *self._incomplete]
         counts.update(extras)
         data = self.summary.as_dict(wall_time_s, status=status, image_logging=self.image_logging, **counts)
-        write_json_atomic(self.summary_json, data)
+        try:
+            self._summary_file.write(data)
+        except OutputError as err:
+            raise self._first(err, self.summary_json) from None
+        finally:
+            self._lock.release()
+        if self._first_failure is not None:
+            raise self._failure_message()
         return data

@@ -15,8 +15,10 @@ are shifted by half a pixel here.
 
 from __future__ import annotations
 
+import errno
 import math
 import os
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -126,6 +128,11 @@ class Recording:
         try:
             self.stream.flush(timeout_sec=timeout_s)
         except RuntimeError as err:
+            if self.files and _disk_full(self.files[-1]):
+                raise OutputError(
+                    f"{self._named(self.files[-1])}: incomplete, the disk is full (no footer; it holds what was "
+                    "written before)"
+                ) from OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             where = [self._named(self.files[-1])] if self.files else []
             if self.viewer_url is not None:
                 where.append(f"the viewer at {self.viewer_url}")
@@ -222,3 +229,12 @@ class Recording:
     ) -> None:
         """Points in 3D, optionally labelled."""
         self.stream.log(entity, rr.Points3D(positions, radii=radius, colors=colours, labels=labels), static=static)
+
+
+def _disk_full(path: Path) -> bool:
+    """Is the disk of ``path`` full, or nearly (less than 2 MiB free)? A file sink that failed there failed for
+    that reason (rerun's error only says the flush did not finish)."""
+    try:
+        return shutil.disk_usage(path.parent).free < 2 << 20
+    except OSError:
+        return False
