@@ -61,6 +61,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from ..errors import SourceError
     from ..run.loop import run_session
     from ..run.options import RunOptions
+    from ..run.paths import claim_out_dir, config_inputs, run_output_paths
     from ..sources.synthetic import SyntheticSource
     from ..synthetic import Trajectory, demo_scene
     from ..track.tracker import Tracker
@@ -91,12 +92,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
         overlays=not args.no_overlay,
         extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory},
     )
+    out_dir = args.out or default_out("demo")
+    outputs_named = run_output_paths(out_dir, video_out=args.video_out)
     progress = Progress(not args.quiet, "demo")
     try:
-        with SyntheticSource(scene) as source:
-            outputs = run_session(
-                source, Tracker(config, camera), args.out or default_out("demo"), options, progress=progress
-            )
+        with claim_out_dir(out_dir, outputs_named, config_inputs(config, args.config, args.camera)):
+            with SyntheticSource(scene) as source:
+                outputs = run_session(source, Tracker(config, camera), out_dir, options, progress=progress)
     finally:
         progress.close()
     return finish(args, outputs)

@@ -108,6 +108,7 @@ def cmd_live(args: argparse.Namespace) -> int:
     from ..errors import CameraError, SourceError
     from ..run.loop import run_session
     from ..run.options import RunOptions
+    from ..run.paths import claim_out_dir, config_inputs, run_output_paths
     from ..sources.open import SYNTHETIC, DeviceSettings, open_source
     from ..track.tracker import Tracker
 
@@ -145,12 +146,13 @@ def cmd_live(args: argparse.Namespace) -> int:
             extra_summary={"command": "live", "device": str(args.device), "granted": dict(source.grabber.granted)},
             output_queue=3,  # live: a late logger skips frames rather than holding many (6 MB each at 1080p)
         )
-        if args.record:
-            Path(out_dir).mkdir(parents=True, exist_ok=True)
-            camera.to_yaml(Path(out_dir) / "camera.yml")  # so `ar-anchor replay OUT/raw.mkv` finds it
+        camera_yml = [("--record", Path(out_dir) / "camera.yml")] if args.record else []
+        outputs_named = run_output_paths(out_dir, record_raw=args.record, video_out=args.video_out, extra=camera_yml)
         status = LiveStatus(not args.quiet, source.stats)
         try:
-            with source:
+            with claim_out_dir(out_dir, outputs_named, config_inputs(config, args.config, args.camera)), source:
+                if args.record:
+                    camera.to_yaml(Path(out_dir) / "camera.yml")  # so `ar-anchor replay OUT/raw.mkv` finds it
                 outputs = run_session(
                     source,
                     Tracker(config, camera),

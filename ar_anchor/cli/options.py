@@ -45,6 +45,13 @@ positive_float = float_above(0.0, inclusive=False)
 non_negative_float = float_above(0.0, inclusive=True)
 
 
+def output_path(text: str) -> Path:
+    """An argparse type: a path to write to. An empty one is refused (it would mean the current folder)."""
+    if not text:
+        raise argparse.ArgumentTypeError("empty path (give the folder or file to write, e.g. runs/first)")
+    return Path(text)
+
+
 def float_in(low: float, high: float):
     """A number in [low, high]."""
 
@@ -105,10 +112,12 @@ def add_command(commands: Any, name: str, help_text: str, description: str) -> a
 def add_run_options(parser: argparse.ArgumentParser, name: str, *, spawn: bool = True) -> None:
     """--max-frames, --out and (optionally) --spawn, shared by the commands that run the tracker."""
     parser.add_argument("--max-frames", type=int_at_least(1), default=None, help="stop after N frames")
-    parser.add_argument("--out", type=Path, default=None, help=f"output directory (default recordings/{name}-<time>/)")
+    parser.add_argument(
+        "--out", type=output_path, default=None, help=f"output directory (default recordings/{name}-<time>/)"
+    )
     parser.add_argument(
         "--video-out",
-        type=Path,
+        type=output_path,
         default=None,
         metavar="FILE",
         help="also write the annotated video (overlays drawn) to FILE: .mp4/.mov/.mkv (H.264) or .avi (MJPG)",

@@ -67,6 +67,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from ..camera import CameraModel
     from ..run.loop import run_session
     from ..run.options import RunOptions
+    from ..run.paths import claim_out_dir, config_inputs, run_output_paths, source_inputs
     from ..sources import open_source
     from ..track.tracker import Tracker
 
@@ -84,16 +85,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
             record_fps=source.info.fps or 30.0,
             extra_summary={"command": "replay", "source": str(args.source)},
         )
+        out_dir = args.out or default_out("replay")
+        inputs = source_inputs(source) + config_inputs(config, args.config, camera_path)
+        outputs_named = run_output_paths(out_dir, video_out=args.video_out)
         progress = Progress(not args.quiet, "replay")
         try:
-            outputs = run_session(
-                source,
-                Tracker(config, camera),
-                args.out or default_out("replay"),
-                options,
-                progress=progress,
-                summary_extras=lambda: {"source_ended_early": source.info.ended_early},
-            )
+            with claim_out_dir(out_dir, outputs_named, inputs):
+                outputs = run_session(
+                    source,
+                    Tracker(config, camera),
+                    out_dir,
+                    options,
+                    progress=progress,
+                    summary_extras=lambda: {"source_ended_early": source.info.ended_early},
+                )
         finally:
             progress.close()
     code = finish(args, outputs)

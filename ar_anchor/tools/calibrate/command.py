@@ -9,7 +9,8 @@ import os
 import sys
 from pathlib import Path
 
-from ...errors import ArAnchorError, InputError, OutputError, SourceError
+from ...errors import ArAnchorError, InputError, OutputError, SourceError, printable
+from ...run.paths import check_paths, spec_inputs
 from ...sources.open import is_device
 from .gather import calibrate_source
 from .recording import CalibrationRecording
@@ -19,6 +20,15 @@ from .views import CharucoSpec
 __all__ = ["run_calibrate"]
 
 log = logging.getLogger(__name__)
+
+
+def _check_paths(out: Path, rrd: Path, source: str) -> None:
+    """Neither output (``--out``, ``--rrd``, or the temporary files they are written through) may be an input
+    file of ``source`` or the other output (:class:`InputError` naming both)."""
+    outputs = [("--out", out), ("--rrd", rrd)]
+    outputs += [("--out", out.with_name(f".{out.name}.{os.getpid()}.tmp.yml"))]
+    outputs += [("--rrd", rrd.with_name(f".{rrd.name}.{os.getpid()}.tmp"))]
+    check_paths(outputs, [] if is_device(source) else spec_inputs(source))
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
@@ -37,9 +47,12 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if not os.access(out.parent, os.W_OK):
         raise OutputError(f"--out {out}: folder {out.parent} is not writable")
     rrd = Path(args.rrd) if getattr(args, "rrd", None) is not None else out.with_suffix(".rrd")
+    if rrd.is_dir():
+        raise InputError(f"--rrd {printable(rrd)}: is a directory (give the .rrd file to write)")
     source = str(args.source)
     if not is_device(source) and not any(ch in source for ch in "*?[") and not Path(source).exists():
         raise SourceError(f"{source}: not found (expected an image folder or glob, a video file, or a device)")
+    _check_paths(out, rrd, source)
 
     def progress(message: str) -> None:
         if not quiet:
