@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..errors import EXIT_FAILURE
+from ..errors import EXIT_FAILURE, printable
 from .options import (
     add_command,
     add_run_options,
@@ -104,7 +104,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     code = finish(args, outputs)
     if source.info.ended_early:
         print(
-            f"ar-anchor: error: {args.source}: the stream ended early (damaged or truncated file); outputs cover "
+            f"ar-anchor: error: {printable(args.source)}: "
+            f"{source.info.ended_because or 'the stream ended early (damaged or truncated file)'}; outputs cover "
             f"the {outputs.summary['frames']} frames read before that",
             file=sys.stderr,
         )
