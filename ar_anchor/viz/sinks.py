@@ -16,9 +16,11 @@ are shifted by half a pixel here.
 from __future__ import annotations
 
 import errno
+import logging
 import math
 import os
 import shutil
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -28,10 +30,12 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..errors import OutputError
+from ..errors import OutputError, printable
 from .viewer import spawn_local_viewer
 
 __all__ = ["Recording"]
+
+log = logging.getLogger(__name__)
 
 Colour = tuple[int, int, int] | tuple[int, int, int, int]
 
@@ -150,9 +154,23 @@ class Recording:
             keep = False
             raise
         finally:
-            self.stream.disconnect()
+            self._disconnect(timeout_s)
             if self._writing is not None and self.files:
                 self._finish(self._writing, self.files[-1], keep=keep)
+
+    def _disconnect(self, timeout_s: float) -> None:
+        """Close the sinks, waiting at most ``timeout_s``: a viewer that accepts and never reads would
+        hold rerun's disconnect forever."""
+        done = threading.Thread(target=self.stream.disconnect, name="rerun-disconnect", daemon=True)
+        done.start()
+        done.join(timeout_s)
+        if done.is_alive():
+            rr.unregister_shutdown()  # its at-exit flush would wait on that viewer too
+            log.warning(
+                "%s: the viewer did not take the rest of the recording within %g s; left it",
+                printable(self.viewer_url or "the viewer"),
+                timeout_s,
+            )
 
     # ------------------------------------------------------------------ logging primitives
     def time(self, timeline: str, *, sequence: int | None = None, seconds: float | None = None) -> None:
