@@ -8,6 +8,7 @@ documented longer run (docs/robustness.md).
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import logging
@@ -144,6 +145,17 @@ POSES_HEADER = (
     "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
     "raw_rvec_x,raw_rvec_y,raw_rvec_z,raw_tvec_x,raw_tvec_y,raw_tvec_z,reproj_px,ambiguity"
 )
+
+
+def study_args(argv: list[str]) -> argparse.Namespace:
+    """``ar-anchor study`` options parsed as the command would, quiet."""
+    from ar_anchor.tools.study import configure_parser
+
+    parser = argparse.ArgumentParser(allow_abbrev=False)
+    configure_parser(parser)
+    args = parser.parse_args(argv)
+    args.quiet = True
+    return args
 
 
 def cli(args: list[str]) -> list[str]:

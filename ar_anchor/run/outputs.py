@@ -33,6 +33,7 @@ __all__ = [
     "RunSummary",
     "SummaryFile",
     "WholeLinesFile",
+    "check_not_a_file",
     "is_disk_full",
     "prepare_out_dir",
     "write_failure",
@@ -45,16 +46,22 @@ POSES_CSV_HEADER = (
 ).split(",")
 
 
-def prepare_out_dir(out: str | os.PathLike[str], option: str = "--out") -> Path:
-    """Create the output directory ``out``. One that can never be a directory (a file is in the way)
-    is bad input (:class:`InputError`, exit 2); failing to create it otherwise is an :class:`OutputError`."""
-    out = Path(out)
+def check_not_a_file(out: Path, option: str = "--out") -> None:
+    """An :class:`InputError` when ``out``, or a folder it would be created in, is a file: it can never
+    be a directory."""
     probe = out
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent
     if probe.exists() and not probe.is_dir():
-        what = "is" if probe == out else f"is inside {probe}, which is"
-        raise InputError(f"{option}: {out} {what} a file, not a directory")
+        what = "is" if probe == out else f"is inside {printable(probe)}, which is"
+        raise InputError(f"{option}: {printable(out)} {what} a file, not a directory")
+
+
+def prepare_out_dir(out: str | os.PathLike[str], option: str = "--out") -> Path:
+    """Create the output directory ``out``. One that can never be a directory (a file is in the way)
+    is bad input (:class:`InputError`, exit 2); failing to create it otherwise is an :class:`OutputError`."""
+    out = Path(out)
+    check_not_a_file(out, option)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:

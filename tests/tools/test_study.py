@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -12,17 +11,13 @@ import numpy as np
 import pytest
 
 from ar_anchor.errors import InputError
-from ar_anchor.tools.study import STUDIES, PnPSetup, configure_parser, make_correspondences, run_study, solve_trial
+from ar_anchor.tools.study import STUDIES, PnPSetup, make_correspondences, run_study, solve_trial
+from tests.helpers import study_args
 
 RERUN = Path(sys.executable).with_name("rerun")
 
 
-def parse(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(allow_abbrev=False)
-    configure_parser(parser)
-    args = parser.parse_args(argv)
-    args.quiet = True
-    return args
+parse = study_args
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,6 @@ failures and interruption (Ctrl-C, SIGTERM) at any moment; nothing that looks fi
 
 from __future__ import annotations
 
-import argparse
 import errno
 import os
 import signal
@@ -17,20 +16,16 @@ import pytest
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.errors import InputError, OutputError
-from ar_anchor.tools.study import command, configure_parser, run_study
+from ar_anchor.tools.study import command, run_study
 from ar_anchor.tools.study import interrupt as study_interrupt
 from ar_anchor.tools.study.figures import plot_jitter, plot_outliers
 from ar_anchor.tools.study.files import StudyFiles
+from tests.helpers import study_args
 
 TINY_PNP = ["--seeds", "1", "--points", "20", "--contamination", "10", "--iterations", "20"]
 
 
-def parse(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(allow_abbrev=False)
-    configure_parser(parser)
-    args = parser.parse_args(argv)
-    args.quiet = True
-    return args
+parse = study_args
 
 
 def camera_file(tmp_path: Path, width: int, height: int, fx: float, *, cx=None, skew=0.0, dist=()) -> Path:

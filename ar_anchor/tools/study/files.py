@@ -9,6 +9,7 @@ import tempfile
 from pathlib import Path
 
 from ...errors import InputError, OutputError, printable
+from ...run.outputs import check_not_a_file
 
 __all__ = ["DEFAULT_OUT", "StudyFiles", "check_out", "create_out"]
 
@@ -31,12 +32,7 @@ def check_out(text: str | os.PathLike[str] | None) -> Path:
             f"--out {printable(out)}: the path is not valid UTF-8, and the rerun recording cannot be written "
             "under such a name; choose a UTF-8 name"
         ) from None
-    probe = out
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    if probe.exists() and not probe.is_dir():
-        what = "is" if probe == out else f"is inside {printable(probe)}, which is"
-        raise InputError(f"--out: {printable(out)} {what} a file, not a directory")
+    check_not_a_file(out)
     return out
 
 
