@@ -15,6 +15,7 @@ from .options import (
     float_in,
     int_at_least,
     load_tracker_config,
+    run_options,
 )
 from .report import Progress, finish
 
@@ -60,7 +61,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from ..camera import CameraModel
     from ..errors import SourceError
     from ..run.loop import run_session
-    from ..run.options import RunOptions
     from ..run.paths import claim_out_dir, config_inputs, run_output_paths
     from ..sources.synthetic import SyntheticSource
     from ..synthetic import Trajectory, demo_scene
@@ -83,14 +83,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         )
     except SourceError as err:
         raise SourceError(f"--camera {args.camera}: {err}") from None
-    options = RunOptions(
-        max_frames=args.max_frames,
-        spawn=args.spawn,
-        connect=args.connect,
-        recording_name="ar_anchor demo",
-        video_out=args.video_out,
-        overlays=not args.no_overlay,
-        extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory},
+    options = run_options(
+        args, "demo", extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory}
     )
     out_dir = args.out or default_out("demo")
     outputs_named = run_output_paths(out_dir, video_out=args.video_out)

@@ -17,6 +17,7 @@ from .options import (
     load_tracker_config,
     non_negative_float,
     positive_float,
+    run_options,
 )
 from .report import LiveStatus, finish
 
@@ -107,7 +108,6 @@ def cmd_live(args: argparse.Namespace) -> int:
     from ..camera import CameraModel
     from ..errors import CameraError, SourceError
     from ..run.loop import run_session
-    from ..run.options import RunOptions
     from ..run.paths import claim_out_dir, config_inputs, run_output_paths
     from ..sources.open import SYNTHETIC, DeviceSettings, open_source
     from ..track.tracker import Tracker
@@ -134,15 +134,11 @@ def cmd_live(args: argparse.Namespace) -> int:
         camera_file = CameraModel.from_yaml(args.camera) if args.camera else source.camera
         camera = camera_for_source(camera_file, source.resolution, f"--camera {args.camera}")
         out_dir = args.out or default_out("live")
-        options = RunOptions(
-            max_frames=args.max_frames,
-            spawn=args.spawn,
-            connect=args.connect,
-            recording_name=f"ar_anchor live {args.device}",
+        options = run_options(
+            args,
+            f"live {args.device}",
             record_raw=args.record,
             record_fps=source.info.fps or 30.0,
-            video_out=args.video_out,
-            overlays=not args.no_overlay,
             extra_summary={"command": "live", "device": str(args.device), "granted": dict(source.grabber.granted)},
             output_queue=3,  # live: a late logger skips frames rather than holding many (6 MB each at 1080p)
         )

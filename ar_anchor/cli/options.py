@@ -176,6 +176,22 @@ def default_out(name: str) -> Path:
     return Path("recordings") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+def run_options(args: argparse.Namespace, name: str, **specific: Any):  # noqa: ANN201
+    """The :class:`~ar_anchor.run.options.RunOptions` every run command takes from its options (frames,
+    viewer, annotated video, overlays), the recording named ``ar_anchor <name>``, plus ``specific``."""
+    from ..run.options import RunOptions
+
+    return RunOptions(
+        max_frames=args.max_frames,
+        spawn=args.spawn,
+        connect=args.connect,
+        recording_name=f"ar_anchor {name}",
+        video_out=args.video_out,
+        overlays=not args.no_overlay,
+        **specific,
+    )
+
+
 def load_tracker_config(args: argparse.Namespace, *, demo: bool = False):  # noqa: ANN202
     """``--config`` (or the built-in defaults; ``demo``: the demo scene's) with the command-line overrides."""
     from ..config import ConfigValueError, implausible_length_hint, load_config

@@ -17,6 +17,7 @@ from .options import (
     default_out,
     load_tracker_config,
     positive_float,
+    run_options,
 )
 from .report import Progress, finish
 
@@ -66,7 +67,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
     """``ar-anchor replay SOURCE``: track a video file or images and record the run; the exit code."""
     from ..camera import CameraModel
     from ..run.loop import run_session
-    from ..run.options import RunOptions
     from ..run.paths import claim_out_dir, config_inputs, run_output_paths, source_inputs
     from ..sources import open_source
     from ..track.tracker import Tracker
@@ -75,13 +75,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     with open_source(args.source, live=False, fps=args.fps) as source:
         camera_path = _replay_camera(args)
         camera = camera_for_source(CameraModel.from_yaml(camera_path), source.resolution, f"--camera {camera_path}")
-        options = RunOptions(
-            max_frames=args.max_frames,
-            spawn=args.spawn,
-            connect=args.connect,
-            recording_name=f"ar_anchor replay {args.source}",
-            video_out=args.video_out,
-            overlays=not args.no_overlay,
+        options = run_options(
+            args,
+            f"replay {args.source}",
             record_fps=source.info.fps or 30.0,
             extra_summary={"command": "replay", "source": str(args.source)},
         )
