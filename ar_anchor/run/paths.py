@@ -22,7 +22,7 @@ import os
 import re
 import socket
 from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -265,7 +265,11 @@ class OutDirLock:
 def clear_previous_run(out_dir: Path, keep: Sequence[Named] = ()) -> list[str]:
     """Remove the previous run's own files from ``out_dir`` (its fixed names, ``recording.partN.rrd`` and the
     annotated video its ``summary.json`` names inside ``out_dir``); regular files only, never one of ``keep``
-    (this run's inputs). ``summary.json`` itself stays: the new run replaces it. Returns the names removed."""
+    (this run's inputs). ``summary.json`` itself stays: the new run replaces it. Only a folder whose
+    ``summary.json`` says a run wrote it is cleared: files of those names in any other folder are the
+    user's. Returns the names removed."""
+    if not _previous_run_here(out_dir):
+        return []
     kept = {_identity(path)[0] for _, path in keep}
     names = [name for name in RUN_FILES if name != "summary.json"]
     names += [p.name for p in out_dir.iterdir() if _PART.fullmatch(p.name)]
@@ -283,6 +287,16 @@ def clear_previous_run(out_dir: Path, keep: Sequence[Named] = ()) -> list[str]:
     if removed:
         log.info("--out %s: removed the previous run's %s", printable(out_dir), ", ".join(removed))
     return removed
+
+
+def _previous_run_here(out_dir: Path) -> bool:
+    """Does ``out_dir`` hold a run's ``summary.json`` (a JSON object with its ``status``)? Every run writes
+    one as it starts (status ``running``)."""
+    try:
+        data = json.loads((out_dir / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("status"), str)
 
 
 def _previous_video(out_dir: Path) -> list[str]:
@@ -306,7 +320,14 @@ def claim_out_dir(out_dir: Path, outputs: Sequence[Named], inputs: Sequence[Name
     for option, path in outputs:
         if option == "--video-out":
             check_video_out(path, out_dir)
+    created = not out_dir.exists()
     out = prepare_out_dir(out_dir)
-    with OutDirLock(out):
-        clear_previous_run(out, keep=inputs)
-        yield out
+    try:
+        with OutDirLock(out):
+            clear_previous_run(out, keep=inputs)
+            yield out
+    except InputError:
+        if created:  # bad input found before the run wrote anything: no empty folder left behind
+            with suppress(OSError):
+                out.rmdir()
+        raise

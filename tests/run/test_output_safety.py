@@ -231,6 +231,7 @@ def test_a_reused_out_is_cleared_of_the_previous_runs_files_only(tmp_path, video
 
 
 def test_clearing_never_removes_an_input_or_a_symlink(tmp_path):
+    (tmp_path / "summary.json").write_text(json.dumps({"status": "completed"}))  # a run wrote here
     (tmp_path / "raw.mkv").write_text("input")
     target = tmp_path / "elsewhere.rrd"
     target.write_text("keep")
@@ -238,3 +239,23 @@ def test_clearing_never_removes_an_input_or_a_symlink(tmp_path):
     removed = clear_previous_run(tmp_path, keep=[("SOURCE", tmp_path / "raw.mkv")])
     assert removed == []
     assert (tmp_path / "raw.mkv").read_text() == "input" and target.read_text() == "keep"
+
+
+def test_a_folder_no_run_wrote_is_never_cleared(tmp_path):
+    # given a folder of the user's own files that happen to carry a run's file names, and no run's summary
+    for name in ("poses.csv", "recording.rrd", "recording.part1.rrd", "raw.mkv"):
+        (tmp_path / name).write_text("the user's")
+    (tmp_path / "summary.json").write_text("[1, 2]")  # JSON, but not a run's summary
+    # then nothing is removed
+    assert clear_previous_run(tmp_path) == []
+    assert all((tmp_path / name).read_text() == "the user's" for name in ("poses.csv", "recording.rrd", "raw.mkv"))
+
+
+def test_bad_input_found_after_the_out_folder_was_made_leaves_no_folder(tmp_path):
+    # given a config whose overlay mesh does not exist (found only when the run builds its renderer)
+    config = tmp_path / "c.toml"
+    config.write_text('[markers]\nlength_m = 0.05\n\n[[overlays]]\ntarget = "marker:*"\nkind = "mesh"\npath = "x.glb"')
+    result = run_main(["demo", "--frames", "3", "--config", str(config), "--out", str(tmp_path / "new" / "run")])
+    # then exit 2 and the folder the run made is gone again
+    assert result.code == 2, result.describe()
+    assert not (tmp_path / "new" / "run").exists()
