@@ -25,7 +25,7 @@ import warnings
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
-from ..errors import EXIT_INTERRUPTED
+from ..errors import EXIT_INTERRUPTED, printable
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -102,11 +102,13 @@ class Signals:
 
 def interrupted_outputs(err: BaseException) -> str:
     """What the interrupted run leaves: complete outputs, or (a second Ctrl-C cut the closing short) the
-    files that may be incomplete, as the run loop names them in ``err.incomplete``."""
+    files that may be incomplete, as the run loop names them in ``err.incomplete``; and where (``err.out_dir``)."""
     incomplete = getattr(err, "incomplete", None)
+    out_dir = getattr(err, "out_dir", None)
+    where = f" in {printable(out_dir)}/" if out_dir is not None else ""
     if incomplete:
-        return f"closing cut short: {', '.join(incomplete)} may be incomplete; the other outputs are complete"
-    return "outputs written so far are complete"
+        return f"closing cut short: {', '.join(incomplete)} may be incomplete; the other outputs{where} are complete"
+    return f"outputs written so far{where} are complete"
 
 
 class _QuietStdout(io.TextIOBase):

@@ -19,6 +19,7 @@ import socket
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_INTERRUPTED, printable
@@ -38,7 +39,8 @@ class InterruptGuard:
     returns the names of the outputs that may be incomplete) and ends the process (exit 130).
     Main thread only; elsewhere it does nothing."""
 
-    def __init__(self, abandon: Callable[[], list[str]] | None = None) -> None:
+    def __init__(self, abandon: Callable[[], list[str]] | None = None, out_dir: Path | None = None) -> None:
+        self._out_dir = out_dir  # named in the last line, when a second signal ends the process
         self._previous: dict[int, Any] = {}
         self._critical = False
         self._pending: int | None = None
@@ -133,7 +135,11 @@ class InterruptGuard:
             log.debug("closing cut short: the summary could not be written", exc_info=True)
             incomplete = ["summary.json"]
         what = ", ".join(printable(name) for name in incomplete) or "no output"
-        line = f"ar-anchor: interrupted again while closing: {what} may be incomplete; the other outputs are complete\n"
+        where = f" in {printable(self._out_dir)}/" if self._out_dir is not None else ""
+        line = (
+            f"ar-anchor: interrupted again while closing: {what} may be incomplete; "
+            f"the other outputs{where} are complete\n"
+        )
         try:
             os.write(2, line.encode("utf-8", "backslashreplace"))
         except OSError:

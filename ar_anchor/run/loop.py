@@ -77,7 +77,7 @@ def run_session(
     start = time.perf_counter()
     try:
         abandon = lambda: _abandon(outputs, options, time.perf_counter() - start, summary_extras)  # noqa: E731
-        with InterruptGuard(abandon) as guard, _quick_gil_handover(info.live):
+        with InterruptGuard(abandon, outputs.out_dir) as guard, _quick_gil_handover(info.live):
             feed = _FrameFeed(source, info, options)
             try:
                 outputs.open(tracker.camera, tracker.config.recording, info, renderer)
@@ -87,8 +87,9 @@ def run_session(
                 feed.close()  # the decoding thread first: nothing reads the source any more
                 outputs.close()
         status = "completed"
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
         status = "interrupted"
+        err.out_dir = outputs.out_dir  # type: ignore[attr-defined]  # where the outputs are, for the last line
         raise
     except BaseException:
         status = "failed"

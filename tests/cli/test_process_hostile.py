@@ -58,6 +58,13 @@ def test_signals_end_the_process_at_once_before_and_after_the_command_and_interr
     assert {signum: signal.getsignal(signum) for signum in previous} == previous
 
 
+def test_the_interrupted_line_says_where_the_outputs_are():
+    interrupt = KeyboardInterrupt("signal 2")
+    assert terminal.interrupted_outputs(interrupt) == "outputs written so far are complete"
+    interrupt.out_dir = Path("recordings/live-1\n")  # set by the run loop; printed escaped
+    assert terminal.interrupted_outputs(interrupt) == "outputs written so far in recordings/live-1\\n/ are complete"
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 @pytest.mark.parametrize("after_s", [0.15, 0.3, 0.45, 0.7, 1.0])
@@ -126,7 +133,7 @@ def test_a_second_ctrl_c_while_flushing_to_a_stalled_viewer_ends_the_run_at_once
     _no_noise(result)
     assert process.returncode == EXIT_INTERRUPTED, describe(result)
     assert waited < 5.0, describe(result)
-    assert "recording.rrd may be incomplete" in stderr, describe(result)
+    assert "recording.rrd may be incomplete" in stderr and "outputs in out/ are complete" in stderr, describe(result)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["status"] == "interrupted"
     assert summary["closing_cut_short"] == ["recording.rrd"]
