@@ -289,14 +289,26 @@ def clear_previous_run(out_dir: Path, keep: Sequence[Named] = ()) -> list[str]:
     return removed
 
 
+_SUMMARY_KEYS = ("status", "frames_with_pose", "latency_ms")  # a run's summary.json has these, from its start
+
+
 def _previous_run_here(out_dir: Path) -> bool:
-    """Does ``out_dir`` hold a run's ``summary.json`` (a JSON object with its ``status``)? Every run writes
-    one as it starts (status ``running``)."""
+    """Does ``out_dir`` hold a run's ``summary.json``? Every run writes one as it starts (status ``running``)."""
     try:
         data = json.loads((out_dir / "summary.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return False
-    return isinstance(data, dict) and isinstance(data.get("status"), str)
+    return isinstance(data, dict) and all(key in data for key in _SUMMARY_KEYS)
+
+
+def _not_ours(out_dir: Path, outputs: Sequence[Named]) -> list[str]:
+    """The files of ``out_dir`` a run would write over (its fixed names, ``recording.partN.rrd``) when no run
+    wrote the folder: they are the user's."""
+    if not out_dir.is_dir() or _previous_run_here(out_dir):
+        return []
+    names = [path.name for option, path in outputs if option in ("--out", "--record") and path.parent == out_dir]
+    names += [p.name for p in out_dir.iterdir() if _PART.fullmatch(p.name)]
+    return [name for name in names if (out_dir / name).exists() or (out_dir / name).is_symlink()]
 
 
 def _previous_video(out_dir: Path) -> list[str]:
@@ -317,6 +329,11 @@ def claim_out_dir(out_dir: Path, outputs: Sequence[Named], inputs: Sequence[Name
     previous run's files; the lock is held until the block ends."""
     check_paths(outputs, inputs)
     _parts_among(inputs, outputs, out_dir)
+    if theirs := _not_ours(out_dir, outputs):
+        raise InputError(
+            f"--out {printable(out_dir)}: holds {', '.join(theirs)}, which no ar-anchor run wrote (no run's "
+            "summary.json there); a run would overwrite them: give a new or empty folder"
+        )
     for option, path in outputs:
         if option == "--video-out":
             check_video_out(path, out_dir)

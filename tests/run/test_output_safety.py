@@ -217,7 +217,13 @@ def test_a_reused_out_is_cleared_of_the_previous_runs_files_only(tmp_path, video
     stale = ["recording.part2.rrd", "recording.part7.rrd", "raw.mkv", "raw.mkv.timestamps.csv", "old.mp4"]
     for name in stale:
         (out / name).write_text("previous run")
-    (out / "summary.json").write_text(json.dumps({"status": "completed", "video_out": {"path": str(out / "old.mp4")}}))
+    previous = {
+        "status": "completed",
+        "frames_with_pose": 3,
+        "latency_ms": {},
+        "video_out": {"path": str(out / "old.mp4")},
+    }
+    (out / "summary.json").write_text(json.dumps(previous))
     mine = ["notes.txt", "recording.partX.rrd", "camera.yml", "other.mp4"]
     for name in mine:
         (out / name).write_text("the user's")
@@ -231,7 +237,7 @@ def test_a_reused_out_is_cleared_of_the_previous_runs_files_only(tmp_path, video
 
 
 def test_clearing_never_removes_an_input_or_a_symlink(tmp_path):
-    (tmp_path / "summary.json").write_text(json.dumps({"status": "completed"}))  # a run wrote here
+    (tmp_path / "summary.json").write_text(json.dumps({"status": "completed", "frames_with_pose": 0, "latency_ms": {}}))
     (tmp_path / "raw.mkv").write_text("input")
     target = tmp_path / "elsewhere.rrd"
     target.write_text("keep")
@@ -259,3 +265,16 @@ def test_bad_input_found_after_the_out_folder_was_made_leaves_no_folder(tmp_path
     # then exit 2 and the folder the run made is gone again
     assert result.code == 2, result.describe()
     assert not (tmp_path / "new" / "run").exists()
+
+
+def test_out_holding_the_users_own_files_of_a_runs_names_is_refused(tmp_path, video):
+    # given a folder of the user's own poses.csv, summary.json and recording.rrd (no run wrote them)
+    out = tmp_path / "mine"
+    out.mkdir()
+    for name in ("poses.csv", "summary.json", "recording.rrd", "notes.txt"):
+        (out / name).write_text("the user's")
+    result = _replay(video, "--out", str(out))
+    # then the run is refused naming them, and every file is untouched
+    assert result.code == 2, result.describe()
+    assert "poses.csv" in result.stderr and "no ar-anchor run wrote" in result.stderr, result.describe()
+    assert all((out / name).read_text() == "the user's" for name in ("poses.csv", "summary.json", "recording.rrd"))
