@@ -237,7 +237,7 @@ class TargetTrack:
             )
             k = self.config.output_sigmas if still and not self.noise.outlier else self.config.output_sigmas_moving
             if not still and not self._was_tracked:
-                k = 0.0  # moving and not vouched for: the smoother's lag is not worth its doubt (the measurement)
+                k = 0.0  # moving and not vouched for: the measurement itself (the smoother's lag buys nothing)
             error = so3_log(measured.rotation.T @ rotation)  # body-frame error, as the covariance's
             rotation = measured.rotation @ so3_exp(_within(error, cov_rot, k))
             translation = measured.tvec + _within(translation - measured.tvec, cov_t, k)
@@ -265,7 +265,7 @@ class TargetTrack:
             self._glide = so3_log(pose.rotation.T @ self._output.rotation)
             if float(np.linalg.norm(self._glide)) > 3.0 * step:
                 self._glide = np.zeros(3)
-            elif self._glide.any():
+            elif float(np.linalg.norm(self._glide)) > step:  # more than one frame's step: a glide to show
                 events.append(TrackEvent("glide", f"{math.degrees(np.linalg.norm(self._glide)):.1f} deg glided off"))
         size = float(np.linalg.norm(self._glide))
         self._glide = self._glide * (max(size - step, 0.0) / size) if size > 0.0 else self._glide
