@@ -621,17 +621,23 @@ def assert_valid_camera(camera: CameraModel) -> None:
     assert camera.width > 0 and camera.height > 0
 
 
-def _load_camera(path: Path) -> CameraModel | None:
+def _typed_error_or_valid(load, path: Path, error: type[Exception], check):  # noqa: ANN001, ANN202
+    """``load(path)`` within the time limit: a typed ``error`` naming ``path`` in one line (None), or a
+    result ``check`` accepts (returned); the outcome counted either way."""
     try:
         with time_limit(PER_CALL_S):
-            camera = CameraModel.from_yaml(path)
-    except CameraError as err:
+            result = load(path)
+    except error as err:
         assert_one_line_naming(err, path)
         outcome("typed error")
         return None
     outcome("valid")
-    assert_valid_camera(camera)
-    return camera
+    check(result)
+    return result
+
+
+def _load_camera(path: Path) -> CameraModel | None:
+    return _typed_error_or_valid(CameraModel.from_yaml, path, CameraError, assert_valid_camera)
 
 
 @fuzz_settings(300)
@@ -833,17 +839,8 @@ def assert_valid_layout(layout) -> None:
         assert edges.min() > 1e-6
 
 
-def _load_layout(path: Path):
-    try:
-        with time_limit(PER_CALL_S):
-            layout = read_layout(path)
-    except ConfigError as err:
-        assert_one_line_naming(err, path)
-        outcome("typed error")
-        return None
-    outcome("valid")
-    assert_valid_layout(layout)
-    return layout
+def _load_layout(path: Path):  # noqa: ANN202
+    return _typed_error_or_valid(read_layout, path, ConfigError, assert_valid_layout)
 
 
 @fuzz_settings(150)
@@ -1012,16 +1009,7 @@ def assert_valid_model(model: Model) -> None:
 
 
 def _load_model(path: Path) -> Model | None:
-    try:
-        with time_limit(PER_CALL_S):
-            model = load_mesh(path)
-    except ConfigError as err:
-        assert_one_line_naming(err, path)
-        outcome("typed error")
-        return None
-    outcome("valid")
-    assert_valid_model(model)
-    return model
+    return _typed_error_or_valid(load_mesh, path, ConfigError, assert_valid_model)
 
 
 MESH_FILES = st.one_of(
