@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel
-from ..geometry import Pose, angle_between_deg, marker_corners_in_marker
+from ..geometry import Pose, angle_between_deg, marker_corners_in_marker, vector_norm
 from ..targets import TargetId
 
 __all__ = [
@@ -142,10 +142,10 @@ def check_pose(
     """
     if not pose.is_finite():
         return math.nan, "non-finite rvec/tvec"
-    angle = float(np.linalg.norm(pose.rvec))
+    angle = vector_norm(pose.rvec)
     if angle > math.pi + 1e-9:
         return math.nan, f"rvec norm {angle:.3g} > pi"
-    if float(np.linalg.norm(pose.tvec)) > MAX_DISTANCE_M:
+    if vector_norm(pose.tvec) > MAX_DISTANCE_M:
         return math.nan, f"translation {np.linalg.norm(pose.tvec):.3g} m is implausible"
     depth = pose.apply(points_in_target)[:, 2]
     if np.any(depth <= 1e-6):
@@ -508,8 +508,8 @@ def _residuals(pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist
 
 
 def _rms(pose: Pose, obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray | None) -> float:
-    residual = cv2.projectPoints(obj, pose.rvec, pose.tvec, k, dist)[0].reshape(-1, 2) - img
-    return math.sqrt(float(np.mean(residual * residual)) * 2.0)
+    residual = (cv2.projectPoints(obj, pose.rvec, pose.tvec, k, dist)[0].reshape(-1, 2) - img).ravel()
+    return math.sqrt(float(residual @ residual) * 2.0 / len(residual))  # the RMS of the points' distances
 
 
 def _folded(rvec: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ from filterpy.kalman import KalmanFilter
 
 from ...camera import CameraModel
 from ...config import FilterConfig
-from ...geometry import Pose, angle_between_deg
+from ...geometry import Pose, angle_between_deg, vector_norm
 from ..pose import BoardPose, MarkerPose, PoseHypothesis
 from .noise import CornerNoise
 from .smoothing import RotationFilter, TranslationFilter, so3_exp
@@ -78,7 +78,7 @@ class _TiltTracker:
 
     def _bound(self) -> None:
         rate = self.kf.x[2:, 0]
-        speed = float(np.linalg.norm(rate))
+        speed = vector_norm(rate)
         if speed > self._MAX_RATE:
             self.kf.x[2:, 0] = rate * (self._MAX_RATE / speed)
         block = self.kf.P[:2, :2]
@@ -94,8 +94,8 @@ class _TiltTracker:
         updates (an unclear choice with its noise inflated by the unclarity)."""
         predicted = self.tilt
         second = -first if second is None else second
-        straight = float(np.linalg.norm(first - predicted) + np.linalg.norm(second + predicted))
-        swapped = float(np.linalg.norm(second - predicted) + np.linalg.norm(first + predicted))
+        straight = vector_norm(first - predicted) + vector_norm(second + predicted)
+        swapped = vector_norm(second - predicted) + vector_norm(first + predicted)
         spread = math.sqrt(float(np.trace(self.kf.P[:2, :2])) + 2 * sigma**2)
         is_branch0 = straight <= swapped
         clear = 0.5 * abs(straight - swapped) > spread
@@ -242,7 +242,7 @@ class BranchPair:
             smoother = branch.smoother
             if not restart:
                 smoother.predict(gap_s)
-            jump = float(np.degrees(np.linalg.norm(smoother.innovation(pose.rotation))))
+            jump = math.degrees(vector_norm(smoother.innovation(pose.rotation)))
             if restart or jump > cfg.reset_angle_deg:
                 smoother.reset(pose.rotation, cov_rot)
             else:

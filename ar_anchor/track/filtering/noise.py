@@ -14,6 +14,8 @@ from ..pose import BoardPose, MarkerPose
 
 __all__ = ["CornerNoise", "pose_covariance"]
 
+_EYE3, _EYE6 = np.eye(3), np.eye(6)
+
 
 def pose_covariance(
     pose: Pose, points_in_target: np.ndarray, camera: CameraModel, sigma_px: float
@@ -37,10 +39,10 @@ def pose_covariance(
     skew = np.zeros((count, 3, 3))  # [p]_x per point
     skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -points[:, 2], points[:, 1], -points[:, 0]
     skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = points[:, 2], -points[:, 1], points[:, 0]
-    d_cam = np.concatenate([-rotation @ skew, np.broadcast_to(np.eye(3), (count, 3, 3))], axis=2)  # (N, 3, 6)
+    d_cam = np.concatenate([-rotation @ skew, np.broadcast_to(_EYE3, (count, 3, 3))], axis=2)  # (N, 3, 6)
     jacobian = (d_pixel_d_cam @ d_cam).reshape(2 * count, 6)
     information = jacobian.T @ jacobian
-    information += np.eye(6) * 1e-9 * np.trace(information)  # keep it invertible at degenerate views
+    information += _EYE6 * (1e-9 * np.trace(information))  # keep it invertible at degenerate views
     covariance = sigma_px**2 * np.linalg.inv(information)
     return covariance[:3, :3], covariance[3:, 3:]
 

@@ -34,6 +34,9 @@ def so3_log(rotation: np.ndarray) -> np.ndarray:
 
 
 _POSITION, _VELOCITY = np.arange(3), np.arange(3, 6)  # the blocks of a 3D constant-velocity state [x, v]
+_IDENTITY2 = np.repeat(np.eye(6)[None], 2, axis=0)  # one 6x6 identity per motion model
+_MODELS: dict[tuple[float, float, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # (dt, ...) -> F, F^T, Q
+_MODELS_KEPT = 256  # a variable frame rate makes new steps: the cache starts again beyond this many
 
 
 def cv_process_noise(dt: float, accel_sigma: float) -> np.ndarray:
@@ -85,7 +88,7 @@ class TwoModeCV:
         p = switch_probability
         self.M = np.array([[1 - p, p], [p, 1 - p]])  # noqa: N806 - the IMM's Markov matrix
         self._dt: float | None = None
-        self._F = self._Q = np.zeros((2, 6, 6))  # noqa: N815
+        self._F = self._FT = self._Q = np.zeros((2, 6, 6))  # noqa: N815
         self._combine()
 
     @property
@@ -104,19 +107,31 @@ class TwoModeCV:
         """The IMM's output: the models' states and covariances weighed by the mode probabilities."""
         self._x = self.mu @ self.xs
         spread = self.xs - self._x
-        self._P = np.einsum("m,mij->ij", self.mu, self.Ps + spread[:, :, None] * spread[:, None, :])
+        self._P = (self.mu @ self.Ps.reshape(2, 36)).reshape(6, 6) + (self.mu[:, None] * spread).T @ spread
 
     def _models(self, dt: float) -> None:
         """Transition and process noise of both models for a step of ``dt`` (the still model: position
-        kept, velocity zeroed, a random walk; the moving one: :func:`cv_transition`, :func:`cv_process_noise`)."""
+        kept, velocity zeroed, a random walk; the moving one: :func:`cv_transition`, :func:`cv_process_noise`).
+        Shared by every filter of the same settings (read only): a video's steps take few distinct values."""
         if dt == self._dt:
             return
-        still_f, still_q = np.zeros((6, 6)), np.zeros((6, 6))
-        still_f[_POSITION, _POSITION] = 1.0
-        still_q[_POSITION, _POSITION] = self.still_sigma**2 * dt
-        still_q[_VELOCITY, _VELOCITY] = 1e-12
-        self._F = np.stack([still_f, cv_transition(dt)])
-        self._Q = np.stack([still_q, cv_process_noise(dt, self.accel_moving)])
+        key = (dt, self.still_sigma, self.accel_moving)
+        models = _MODELS.get(key)
+        if models is None:
+            still_f, still_q = np.zeros((6, 6)), np.zeros((6, 6))
+            still_f[_POSITION, _POSITION] = 1.0
+            still_q[_POSITION, _POSITION] = self.still_sigma**2 * dt
+            still_q[_VELOCITY, _VELOCITY] = 1e-12
+            transition = np.stack([still_f, cv_transition(dt)])
+            models = (
+                transition,
+                transition.transpose(0, 2, 1).copy(),
+                np.stack([still_q, cv_process_noise(dt, self.accel_moving)]),
+            )
+            if len(_MODELS) >= _MODELS_KEPT:
+                _MODELS.clear()
+            _MODELS[key] = models
+        self._F, self._FT, self._Q = models
         self._dt = dt
 
     def predict(self, dt: float) -> None:
@@ -127,9 +142,10 @@ class TwoModeCV:
         omega = self.M * self.mu[:, None] / cbar[None, :]  # omega[i, j]
         mixed_x = omega.T @ self.xs
         spread = self.xs[None, :, :] - mixed_x[:, None, :]  # [j, i, :]
-        mixed_p = np.einsum("ij,ikl->jkl", omega, self.Ps) + np.einsum("ij,jik,jil->jkl", omega, spread, spread)
-        self.xs = np.einsum("mij,mj->mi", self._F, mixed_x)
-        self.Ps = self._F @ mixed_p @ self._F.transpose(0, 2, 1) + self._Q
+        weighted = omega.T[:, :, None] * spread  # [j, i, :]
+        mixed_p = (omega.T @ self.Ps.reshape(2, 36)).reshape(2, 6, 6) + weighted.transpose(0, 2, 1) @ spread
+        self.xs = (self._F @ mixed_x[:, :, None])[:, :, 0]
+        self.Ps = self._F @ mixed_p @ self._FT + self._Q
         self._combine()
 
     def update(self, z: np.ndarray, cov: np.ndarray) -> None:
@@ -142,8 +158,8 @@ class TwoModeCV:
         s = self.Ps[:, rows, rows] + cov  # (2, 3, 3)
         s_inv = np.linalg.inv(s)
         gain = pht @ s_inv  # (2, 6, 3)
-        self.xs = self.xs + np.einsum("mij,mj->mi", gain, innovation)
-        i_kh = np.repeat(np.eye(6)[None], 2, axis=0)
+        self.xs = self.xs + (gain @ innovation[:, :, None])[:, :, 0]
+        i_kh = _IDENTITY2.copy()
         i_kh[:, :, rows] -= gain
         self.Ps = i_kh @ self.Ps @ i_kh.transpose(0, 2, 1) + gain @ cov @ gain.transpose(0, 2, 1)
         self.mu = self.mu @ self.M * _likelihoods(innovation, s, s_inv)

@@ -11,7 +11,7 @@ import numpy as np
 
 from ...camera import CameraModel
 from ...config import FilterConfig
-from ...geometry import Pose, angle_between_deg
+from ...geometry import Pose, angle_between_deg, vector_norm
 from ...targets import TrackState
 from ..pose import BoardPose, MarkerPose, PoseHypothesis
 from .branches import BranchPair
@@ -263,11 +263,11 @@ class TargetTrack:
             return pose
         if changed:
             self._glide = so3_log(pose.rotation.T @ self._output.rotation)
-            if float(np.linalg.norm(self._glide)) > 3.0 * step:
+            if vector_norm(self._glide) > 3.0 * step:
                 self._glide = np.zeros(3)
-            elif float(np.linalg.norm(self._glide)) > step:  # more than one frame's step: a glide to show
-                events.append(TrackEvent("glide", f"{math.degrees(np.linalg.norm(self._glide)):.1f} deg glided off"))
-        size = float(np.linalg.norm(self._glide))
+            elif vector_norm(self._glide) > step:  # more than one frame's step: a glide to show
+                events.append(TrackEvent("glide", f"{math.degrees(vector_norm(self._glide)):.1f} deg glided off"))
+        size = vector_norm(self._glide)
         self._glide = self._glide * (max(size - step, 0.0) / size) if size > 0.0 else self._glide
         if not self._glide.any():
             return pose
@@ -284,7 +284,7 @@ class TargetTrack:
         if previous is None or held:
             return False
         jumped = angle_between_deg(previous.rotation, pose.rotation) > self.config.flip_angle_deg
-        in_place = float(np.linalg.norm(previous.tvec - pose.tvec)) < self.config.spike_translation_m
+        in_place = vector_norm(previous.tvec - pose.tvec) < self.config.spike_translation_m
         self._held_spike = jumped and in_place
         return self._held_spike
 
@@ -338,7 +338,7 @@ class TargetTrack:
         """How much more a prediction over ``gap_s`` may be off than the last measured output (radians):
         the turn the damping leaves out if the motion went on or, if larger, the turn plus the shift (as an
         angle seen from the camera) at the rate last measured."""
-        return max(float(np.linalg.norm(omega)) * (gap_s - reach_s), self._stillness.rate * gap_s)
+        return max(vector_norm(omega) * (gap_s - reach_s), self._stillness.rate * gap_s)
 
     def _too_uncertain(self, covariance: np.ndarray | None) -> bool:
         """3 sigma of the measured orientation beyond flip_angle_deg: even the right branch may be off
@@ -385,8 +385,8 @@ class _Stillness:
         if history:  # how fast it moved since the last measurement (what a prediction may miss), rad/s
             _, last_ns, last = history[-1]
             dt = max((measured_ns - last_ns) * 1e-9, 1e-3)
-            turn = float(np.linalg.norm(so3_log(last.rotation.T @ measured.rotation)))
-            shift = float(np.linalg.norm(measured.tvec - last.tvec)) / max(float(np.linalg.norm(measured.tvec)), 1e-6)
+            turn = vector_norm(so3_log(last.rotation.T @ measured.rotation))
+            shift = vector_norm(measured.tvec - last.tvec) / max(vector_norm(measured.tvec), 1e-6)
             self._rates.append((measured_ns, (turn + shift) / dt))
         horizon = measured_ns - int(self.config.still_s * 1e9)
         while self._rates and self._rates[0][0] < horizon:
@@ -401,8 +401,8 @@ class _Stillness:
             return False  # not seen long enough to tell
         turned = so3_log(then.rotation.T @ measured.rotation)
         moved = measured.tvec - then.tvec
-        shift = float(np.linalg.norm(moved)) / max(float(np.linalg.norm(measured.tvec)), 1e-6)
-        self.settled_deg = math.degrees(float(np.linalg.norm(turned)) + shift)  # turn + shift seen from the camera
+        shift = vector_norm(moved) / max(vector_norm(measured.tvec), 1e-6)
+        self.settled_deg = math.degrees(vector_norm(turned) + shift)  # turn + shift seen from the camera
         return bool(
             turned @ np.linalg.solve(2.0 * cov_rot, turned) < self._STILL_CHI2
             and moved @ np.linalg.solve(2.0 * cov_t, moved) < self._STILL_CHI2
