@@ -1,12 +1,16 @@
 """Speed benchmark: ``ar-anchor bench speed``.
 
-Three pipelines are timed on the very same synthetic frames, rendered beforehand (rendering is never
-timed) at 720p and 1080p with a moving camera:
+Four pipelines are timed on the very same frames, held in memory beforehand (rendering and decoding
+are never timed): synthetic clips at 720p and 1080p with a moving camera (one marker, eight markers,
+a 2x2 board), a synthetic 720p scene of 50 small markers seen by a hand-held camera, and the real
+``chessboard.avi`` (18 markers, no truth; skipped with a note when the real data is absent):
 
 ``opencv``
     The plain loop a newcomer writes: ``cv2.aruco.ArucoDetector`` with OpenCV's default
     ``DetectorParameters`` on the grey image (the BGR -> grey conversion counts as detection), then
-    ``cv2.solvePnP(..., SOLVEPNP_IPPE_SQUARE)`` per marker.
+    ``cv2.solvePnPGeneric(..., SOLVEPNP_IPPE_SQUARE)`` per marker (its first solution).
+``opencv_subpix``
+    The same with ``cornerRefinementMethod = CORNER_REFINE_SUBPIX``.
 ``tracker_full``
     :class:`~ar_anchor.track.tracker.Tracker` with ROI tracking off (full-frame detection every frame).
 ``tracker_roi``
@@ -23,9 +27,12 @@ other: decode (the rendered frames encoded once to H.264 and read back by
 :class:`~ar_anchor.sources.files.VideoFileSource`), track, overlay (the default cube on
 ``marker:*``) and rerun logging (default recording settings, to a temporary ``.rrd``).
 
-Modules: :mod:`.scenes` (the clips), :mod:`.measure` (the pipelines taking turns, their statistics),
-:mod:`.memory`, :mod:`.end_to_end`, :mod:`.run` (:func:`run_speed_benchmark`) and :mod:`.report`
-(``speed.md`` and ``speed.json``).
+Every clip reports each stage per frame and per marker found, the markers found per frame by each
+pipeline, the tracker / plain-loop ratios of the same run, and each pipeline's tracemalloc peak.
+
+Modules: :mod:`.scenes` (the clips), :mod:`.real_clip` (chessboard.avi), :mod:`.measure` (the pipelines
+taking turns, their statistics), :mod:`.memory`, :mod:`.end_to_end`, :mod:`.run` (:func:`run_speed_benchmark`)
+and :mod:`.report` (``speed.md`` and ``speed.json``).
 """
 
 from __future__ import annotations
@@ -33,9 +40,11 @@ from __future__ import annotations
 from .measure import ONE_THREAD_PIPELINES, PIPELINES
 from .report import speed_markdown, write_speed_report
 from .run import run_speed_benchmark
-from .scenes import SCENES, SIZES, render_clip, speed_config, speed_scene
+from .scenes import CLIP_NAMES, EXTRA_CLIPS, SCENES, SIZES, render_clip, speed_config, speed_scene, split_clips
 
 __all__ = [
+    "CLIP_NAMES",
+    "EXTRA_CLIPS",
     "ONE_THREAD_PIPELINES",
     "PIPELINES",
     "SCENES",
@@ -45,5 +54,6 @@ __all__ = [
     "speed_config",
     "speed_markdown",
     "speed_scene",
+    "split_clips",
     "write_speed_report",
 ]

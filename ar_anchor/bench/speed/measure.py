@@ -28,25 +28,38 @@ __all__ = [
     "OPENCV_STAGES",
     "PIPELINES",
     "PIPELINE_LABELS",
+    "PLAIN_PIPELINES",
     "ROI_FLOOR",
     "ROI_TOLERANCE",
+    "TRACKER_PIPELINES",
     "TRACKER_STAGES",
     "WARMUP_FRAMES",
     "accuracy",
+    "found_stats",
+    "loop_factories",
+    "per_marker_ms",
     "pipeline_factories",
     "pipeline_result",
     "pipeline_timing",
     "primary_kind",
     "ratio_opencv_over_roi",
+    "ratios_tracker_over_plain",
     "roi_check",
     "summary_stats",
     "time_pass",
 ]
 
-PIPELINES: tuple[str, ...] = ("opencv", "tracker_full", "tracker_roi")
+PIPELINES: tuple[str, ...] = ("opencv", "opencv_subpix", "tracker_full", "tracker_roi")
+PLAIN_PIPELINES: tuple[str, ...] = ("opencv", "opencv_subpix")
+TRACKER_PIPELINES: tuple[str, ...] = ("tracker_full", "tracker_roi")
 # the one-core comparison (cv2.setNumThreads(1)): the plain loop and the default tracker
 ONE_THREAD_PIPELINES: tuple[str, ...] = ("opencv", "tracker_roi")
-PIPELINE_LABELS = {"opencv": "opencv", "tracker_full": "tracker (full frame)", "tracker_roi": "tracker (ROI)"}
+PIPELINE_LABELS = {
+    "opencv": "opencv",
+    "opencv_subpix": "opencv SUBPIX",
+    "tracker_full": "tracker (full frame)",
+    "tracker_roi": "tracker (ROI)",
+}
 TRACKER_STAGES = ("detect_ms", "pose_ms", "filter_ms")
 OPENCV_STAGES = ("detect_ms", "pose_ms")
 WARMUP_FRAMES = 3
@@ -56,16 +69,24 @@ ROI_TOLERANCE = 0.10  # the ROI tracker's median errors may exceed the full-fram
 ROI_FLOOR = {"rot_median_deg": 0.001, "trans_median_pct": 0.001}
 
 
+Step = tuple[dict[str, float], dict[str, Pose], dict[str, Pose], int]  # stage ms, outputs, raw, markers found
+
+
 class _Loop(Protocol):
-    def step(self, frame: Frame) -> tuple[dict[str, float], dict[str, Pose], dict[str, Pose]]: ...
+    def step(self, frame: Frame) -> Step: ...
 
 
 class _OpenCVLoop:
-    """The plain loop: full-frame ``detectMarkers`` with default parameters, ``solvePnP`` IPPE_SQUARE per marker."""
+    """The plain loop: full-frame ``detectMarkers`` with OpenCV's default ``DetectorParameters`` (``subpix``:
+    with ``cornerRefinementMethod = CORNER_REFINE_SUBPIX``), ``solvePnPGeneric`` IPPE_SQUARE per marker
+    (its first, lower-error solution)."""
 
-    def __init__(self, config: TrackerConfig, camera: CameraModel) -> None:
+    def __init__(self, config: TrackerConfig, camera: CameraModel, *, subpix: bool = False) -> None:
         dictionary = cv2.aruco.getPredefinedDictionary(dictionary_id(config.detector.dictionary))
-        self.detector = cv2.aruco.ArucoDetector(dictionary, cv2.aruco.DetectorParameters())
+        parameters = cv2.aruco.DetectorParameters()
+        if subpix:
+            parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        self.detector = cv2.aruco.ArucoDetector(dictionary, parameters)
         self.config = config
         self.k = np.asarray(camera.camera_matrix, dtype=np.float64)
         self.dist = camera.dist_or_none
@@ -79,37 +100,38 @@ class _OpenCVLoop:
             self._objects[marker_id] = points
         return points
 
-    def step(self, frame: Frame) -> tuple[dict[str, float], dict[str, Pose], dict[str, Pose]]:
+    def step(self, frame: Frame) -> Step:
         t0 = time.perf_counter()
-        grey = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+        grey = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY) if frame.image.ndim == 3 else frame.image
         corners, ids, _ = self.detector.detectMarkers(grey)
         t1 = time.perf_counter()
         solved = []
+        found = 0 if ids is None else len(ids)
         if ids is not None:
             for marker_id, marker_corners in zip(ids.reshape(-1).tolist(), corners):
-                ok, rvec, tvec = cv2.solvePnP(
+                count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
                     self._object(marker_id),
                     marker_corners.reshape(4, 2),
                     self.k,
                     self.dist,
                     flags=cv2.SOLVEPNP_IPPE_SQUARE,
                 )
-                if ok:
-                    solved.append((marker_id, rvec, tvec))
+                if count:
+                    solved.append((marker_id, rvecs[0], tvecs[0]))
         t2 = time.perf_counter()
         poses = {TargetId.marker(i): Pose(rvec.reshape(3), tvec.reshape(3)) for i, rvec, tvec in solved}
-        return {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3}, poses, poses
+        return {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3}, poses, poses, found
 
 
 class _TrackerLoop:
     def __init__(self, config: TrackerConfig, camera: CameraModel) -> None:
         self.tracker = Tracker(config, camera)
 
-    def step(self, frame: Frame) -> tuple[dict[str, float], dict[str, Pose], dict[str, Pose]]:
+    def step(self, frame: Frame) -> Step:
         result = self.tracker.process(frame)
         outputs = {name: target.pose for name, target in result.targets.items()}
         raw = {name: target.raw for name, target in result.targets.items() if target.raw is not None}
-        return dict(result.latency_ms), outputs, raw
+        return dict(result.latency_ms), outputs, raw, len(result.detections)
 
 
 @dataclass
@@ -120,15 +142,23 @@ class _Series:
     step_ms: list[float] = field(default_factory=list)  # the whole call, as seen from outside
     outputs: list[dict[str, Pose]] = field(default_factory=list)
     raw: list[dict[str, Pose]] = field(default_factory=list)
+    found: list[int] = field(default_factory=list)  # markers detected per frame
 
 
 def pipeline_factories(base: TrackerConfig, scene: SyntheticScene, keys: Sequence[str]) -> dict[str, Callable]:
     """A maker of a fresh loop per pipeline key (``keys`` of :data:`PIPELINES`), set up for ``scene``."""
-    camera = scene.camera
     full = speed_config(base, scene, roi=False)
-    roi = speed_config(base, scene, roi=True)
+    return loop_factories(full, speed_config(base, scene, roi=True), scene.camera, keys)
+
+
+def loop_factories(
+    full: TrackerConfig, roi: TrackerConfig, camera: CameraModel, keys: Sequence[str]
+) -> dict[str, Callable]:
+    """A maker of a fresh loop per pipeline key: the trackers with ``full`` (ROI off) and ``roi`` (ROI on),
+    the plain loops with ``full``'s dictionary and marker lengths."""
     makers: dict[str, Callable[[], _Loop]] = {
         "opencv": lambda: _OpenCVLoop(full, camera),
+        "opencv_subpix": lambda: _OpenCVLoop(full, camera, subpix=True),
         "tracker_full": lambda: _TrackerLoop(full, camera),
         "tracker_roi": lambda: _TrackerLoop(roi, camera),
     }
@@ -149,14 +179,16 @@ def time_pass(frames: Sequence[Frame], factories: Mapping[str, Callable[[], _Loo
         for offset in range(len(keys)):
             key = keys[(index + offset) % len(keys)]
             start = time.perf_counter()
-            stages, outputs, raw = loops[key].step(frame)
+            stages, outputs, raw, found = loops[key].step(frame)
             step_ms = (time.perf_counter() - start) * 1e3
             record = series[key]
-            for stage, ms in stages.items():
-                record.stages.setdefault(stage, []).append(ms)
+            for stage in stages.keys() | record.stages.keys():
+                # a stage a frame skipped (the tracker's repeated frames: detection only) took 0 ms there
+                record.stages.setdefault(stage, [0.0] * len(record.step_ms)).append(stages.get(stage, 0.0))
             record.step_ms.append(step_ms)
             record.outputs.append(outputs)
             record.raw.append(raw)
+            record.found.append(found)
     return series
 
 
@@ -207,22 +239,46 @@ def accuracy(outputs: Sequence[Mapping[str, Pose]], truths: Sequence[Mapping[str
     }
 
 
+def found_stats(found: Sequence[int]) -> dict[str, float]:
+    """Markers found per frame: mean, median, min and max (NaN without frames)."""
+    array = np.asarray(found, dtype=np.float64)
+    if array.size == 0:
+        return {"mean": math.nan, "median": math.nan, "min": math.nan, "max": math.nan}
+    return {
+        "mean": float(array.mean()),
+        "median": float(np.median(array)),
+        "min": float(array.min()),
+        "max": float(array.max()),
+    }
+
+
+def per_marker_ms(values: Sequence[float], found: Sequence[int]) -> float:
+    """ms per marker: the median over frames with at least one marker of (that frame's ms / its markers found)."""
+    per = [ms / n for ms, n in zip(values, found) if n > 0]
+    return float(np.median(per)) if per else math.nan
+
+
 def _timing(series: _Series, stages: Sequence[str]) -> dict[str, Any]:
     total = np.sum([series.stages.get(stage, [0.0] * len(series.step_ms)) for stage in stages], axis=0)
     total_stats = summary_stats(total)
+    per_marker = {stage: per_marker_ms(values, series.found) for stage, values in series.stages.items()}
+    per_marker["total_ms"] = per_marker_ms(total.tolist(), series.found)
     return {
         "stages": {stage: summary_stats(values) for stage, values in series.stages.items()},
         "total_stages": list(stages),
         "total_ms": total_stats,
+        "per_marker_ms": per_marker,
+        "found_per_frame": found_stats(series.found),
         "fps": 1e3 / total_stats["mean"] if total_stats["mean"] > 0 else math.nan,
         "step_ms": summary_stats(series.step_ms),
     }
 
 
 def pipeline_timing(key: str, series: _Series, threads: int) -> dict[str, Any]:
-    """One pipeline's stage and total times (its stages: :data:`OPENCV_STAGES` or :data:`TRACKER_STAGES`)
-    and frames per second, with its label and OpenCV's thread count during the pass."""
-    stages = OPENCV_STAGES if key == "opencv" else TRACKER_STAGES
+    """One pipeline's stage and total times (its stages: :data:`OPENCV_STAGES` or :data:`TRACKER_STAGES`),
+    per marker found, markers found per frame and frames per second, with its label and OpenCV's thread
+    count during the pass."""
+    stages = OPENCV_STAGES if key in PLAIN_PIPELINES else TRACKER_STAGES
     return {"label": PIPELINE_LABELS[key], "threads": threads, **_timing(series, stages)}
 
 
@@ -253,6 +309,18 @@ def roi_check(full: Mapping[str, Any], roi: Mapping[str, Any], kind: str) -> dic
         within = within and finite and roi_value <= full_value * (1 + ROI_TOLERANCE) + ROI_FLOOR[metric]
     out["within"] = within  # 10 % plus the floor
     out["within_strict"] = strict  # 10 % alone
+    return out
+
+
+def ratios_tracker_over_plain(pipelines: Mapping[str, Mapping[str, Any]]) -> dict[str, float]:
+    """Median total time of each tracker over each plain loop (``"tracker_roi/opencv_subpix"``: above 1, the
+    tracker is slower), for the pipelines present."""
+    out = {}
+    for tracker in TRACKER_PIPELINES:
+        for plain in PLAIN_PIPELINES:
+            if tracker in pipelines and plain in pipelines:
+                a, b = pipelines[tracker]["total_ms"]["median"], pipelines[plain]["total_ms"]["median"]
+                out[f"{tracker}/{plain}"] = a / b if b > 0 else math.nan
     return out
 
 

@@ -9,14 +9,22 @@ import os
 import resource
 import sys
 import tracemalloc
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from ...camera import CameraModel
 from ...config import TrackerConfig
 from ...sources.base import Frame
 from ...track.tracker import Tracker
 
-__all__ = ["maxrss_mb", "release_freed_memory", "reset_peak_rss", "rss_now_mb", "tracemalloc_peak_mb"]
+__all__ = [
+    "loop_peak_mb",
+    "maxrss_mb",
+    "release_freed_memory",
+    "reset_peak_rss",
+    "rss_now_mb",
+    "tracemalloc_peak_mb",
+]
 
 
 def maxrss_mb() -> float:
@@ -64,6 +72,22 @@ def tracemalloc_peak_mb(frames: Sequence[Frame], config: TrackerConfig, camera: 
         tracker = Tracker(config, camera)
         for frame in frames:
             tracker.process(frame)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    return peak / 1e6
+
+
+def loop_peak_mb(make: Callable[[], Any], frames: Sequence[Frame]) -> float:
+    """Peak of Python-side allocations (numpy arrays included, OpenCV's own C++ buffers not) of a fresh loop
+    from ``make()`` (anything with ``step(frame)``: a pipeline of :mod:`.measure`) stepping over ``frames``;
+    the frames themselves were allocated before and do not count."""
+    gc.collect()
+    tracemalloc.start()
+    try:
+        loop = make()
+        for frame in frames:
+            loop.step(frame)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()

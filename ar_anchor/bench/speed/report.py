@@ -11,7 +11,7 @@ from ..report import fmt, fmt_sig, write_json
 from .end_to_end import E2E_STAGES
 from .measure import ONE_THREAD_PIPELINES, PIPELINE_LABELS, PIPELINES, ROI_FLOOR, primary_kind
 from .run import run_speed_benchmark
-from .scenes import NOISE_SHIFT, SCENE_LABELS, SCENES, SIZES
+from .scenes import EXTRA_CLIPS, NOISE_SHIFT, SCENES, SIZES
 
 __all__ = ["speed_markdown", "write_speed_report"]
 
@@ -26,19 +26,24 @@ def write_speed_report(
     frames: int | None = None,
     sizes: Sequence[tuple[int, int, float]] = SIZES,
     scenes: Sequence[str] = SCENES,
+    extra: Sequence[str] = EXTRA_CLIPS,
     one_thread: bool | str | None = None,
     end_to_end: bool = True,
+    realdata: Path | None = None,
 ) -> dict[str, Any]:
     """Run the benchmark, write ``speed.md`` and ``speed.json`` to ``out_dir``, return the results.
 
     ``quick``: 90 frames per clip instead of 300, the one-core pass at the largest size only. ``frames``,
-    ``sizes``, ``scenes``, ``one_thread``, ``end_to_end``: see :func:`~ar_anchor.bench.speed.run.run_speed_benchmark`.
+    ``sizes``, ``scenes``, ``extra``, ``one_thread``, ``end_to_end``, ``realdata``: see
+    :func:`~ar_anchor.bench.speed.run.run_speed_benchmark`.
     """
     frames = frames or (90 if quick else 300)
     results = run_speed_benchmark(
         frames,
         sizes,
         scenes,
+        extra=extra,
+        realdata=realdata,
         config=config,
         one_thread=("largest" if quick else True) if one_thread is None else one_thread,
         end_to_end=end_to_end,
@@ -56,55 +61,80 @@ def write_speed_report(
 def speed_markdown(results: Mapping[str, Any], command: str) -> str:
     """The report of :func:`~ar_anchor.bench.speed.run.run_speed_benchmark`'s ``results``."""
     meta, clips, e2e = results["meta"], results["clips"], results["end_to_end"]
-    lines = _headline(meta, clips, command) + _stages(clips) + _accuracy(clips)
+    lines = _headline(meta, clips, command)
+    for note in results.get("notes", []):
+        lines += ["", f"Note: {note}."]
+    lines += _stages(clips) + _per_marker(clips) + _accuracy(clips)
     if any(c["one_thread"] for c in clips):
         lines += _one_core(meta, clips)
     if e2e:
         lines += _end_to_end(e2e)
-    lines += _memory(results["memory"]) + _how_measured(meta, clips)
+    lines += _memory(results["memory"]) + _pipeline_memory(meta, clips) + _how_measured(meta, clips)
     return "\n".join(lines)
 
 
 def _headline(meta: Mapping[str, Any], clips: Sequence[Mapping[str, Any]], command: str) -> list[str]:
     """Title, the headline table (default threads) and the board clip's note."""
     lines = [
-        "# Speed: plain OpenCV loop vs. the tracker (full frame and ROI)",
+        "# Speed: plain OpenCV loops vs. the tracker (full frame and ROI)",
         "",
-        f"Produced by `{command}` in {meta['wall_time_s']:.0f} s; {meta['frames_per_clip']} frames per clip, "
-        f"the same frames for every pipeline.",
+        f"Produced by `{command}` in {meta['wall_time_s']:.0f} s; {meta['frames_per_clip']} frames per synthetic "
+        "clip, the same frames for every pipeline.",
         *_table_section(
             "Headline (default OpenCV threads: " + str(meta["opencv_threads"]) + ")",
-            "Per-frame cost, median: opencv = grey conversion + `detectMarkers` + `solvePnP` per marker; tracker = "
-            "detect + pose + filter (`FrameResult.latency_ms`). *speed-up* = opencv median / tracker (ROI) median "
-            "(above 1: the tracker is faster). Errors: median over every target in view and every frame, of each "
-            "pipeline's output pose (the tracker's filtered pose, opencv's solvePnP pose); boards for the board "
-            "clip, markers otherwise. *ROI within 10 %*: the ROI tracker's median rotation and translation errors "
-            f"are at most 110 % of the full-frame tracker's, plus {ROI_FLOOR['rot_median_deg']:g} deg / "
+            "Per-frame cost, median: opencv = grey conversion + `detectMarkers` (default `DetectorParameters()`; "
+            "*SUBPIX*: `cornerRefinementMethod = CORNER_REFINE_SUBPIX`) + `solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)` "
+            "per marker; tracker = detect + pose + filter (`FrameResult.latency_ms`). *tracker / plain*: the "
+            "tracker's median over the plain loop's, in this run on the same frames (above 1: the tracker is "
+            "slower). *found / frame*: markers detected per frame, mean. Errors: median over every target in "
+            "view and every frame, of each pipeline's output pose (the tracker's filtered pose, opencv's first "
+            "IPPE solution); boards for the board clip, markers otherwise; empty for real video (no truth). "
+            "*ROI within 10 %*: the ROI tracker's median rotation and translation errors are at most 110 % of "
+            f"the full-frame tracker's, plus {ROI_FLOOR['rot_median_deg']:g} deg / "
             f"{ROI_FLOOR['trans_median_pct']:g} % (a few micrometres: these clean frames give both trackers errors "
             "so small that 10 % of them is below what they resolve; the JSON also has the plain 10 % test).",
             [
                 "clip",
                 "opencv",
+                "opencv SUBPIX",
                 "tracker full frame",
                 "tracker ROI",
-                "speed-up opencv / ROI",
-                "rot err med deg opencv / full / ROI",
-                "trans err med % opencv / full / ROI",
+                "ROI / SUBPIX",
+                "ROI / opencv",
+                "full / SUBPIX",
+                "full / opencv",
+                "found / frame opencv / SUBPIX / full / ROI",
+                "rot err med deg opencv / SUBPIX / full / ROI",
                 "ROI errors within 10 % of full frame",
             ],
         ),
     ]
     for clip in clips:
-        p = clip["pipelines"]
-        kind = primary_kind(clip["scene"])
-        check = clip["roi_vs_full"]
+        lines.append(_headline_row(clip))
+    if any(c["scene"] == "board" for c in clips):
+        lines += [
+            "",
+            "Board clip: opencv has no board pose, so its errors there are its per-marker errors (the board's "
+            "four markers, each on its own); the trackers' are the board pose's.",
+        ]
+    return lines
 
-        def err(pipe: Mapping[str, Any], metric: str, kind: str = kind) -> Any:
-            acc = pipe["accuracy"][kind] if pipe["accuracy"][kind].get("found") else pipe["accuracy"]["marker"]
-            return acc.get(metric)
 
-        rot = " / ".join(fmt_sig(err(p[key], "rot_median_deg")) for key in PIPELINES)
-        trans = " / ".join(fmt_sig(err(p[key], "trans_median_pct")) for key in PIPELINES)
+def _headline_row(clip: Mapping[str, Any]) -> str:
+    """One clip's row of the headline table."""
+    p, r = clip["pipelines"], clip.get("ratios", {})
+    kind = primary_kind(clip["scene"])
+
+    def err(pipe: Mapping[str, Any], metric: str) -> Any:
+        acc = pipe["accuracy"][kind] if pipe["accuracy"][kind].get("found") else pipe["accuracy"]["marker"]
+        return acc.get(metric)
+
+    rot = " / ".join(fmt_sig(err(p[key], "rot_median_deg")) for key in PIPELINES)
+    found = " / ".join(fmt(p[key]["found_per_frame"]["mean"], 1) for key in PIPELINES)
+    check = clip["roi_vs_full"]
+    if not clip.get("has_truth", True):
+        verdict = "- (no truth)"
+    else:
         verdict = "yes" if check["within"] else "no"
         verdict += (
             f" (ROI vs full: rot {fmt_sig(check['rot_median_deg']['roi'])} vs "
@@ -113,17 +143,37 @@ def _headline(meta: Mapping[str, Any], clips: Sequence[Mapping[str, Any]], comma
             + ("" if check["within_strict"] == check["within"] else "; 10 % alone: no")
             + ")"
         )
-        lines.append(
-            f"| {clip['label']} | {fmt(p['opencv']['total_ms']['median'])} ms "
-            f"| {fmt(p['tracker_full']['total_ms']['median'])} ms | {fmt(p['tracker_roi']['total_ms']['median'])} ms "
-            f"| {fmt(clip['ratio_opencv_over_roi'])}x | {rot} | {trans} | {verdict} |"
+    times = " | ".join(f"{fmt(p[key]['total_ms']['median'])} ms" for key in PIPELINES)
+    ratios = " | ".join(
+        f"{fmt(r.get(name))}x"
+        for name in (
+            "tracker_roi/opencv_subpix",
+            "tracker_roi/opencv",
+            "tracker_full/opencv_subpix",
+            "tracker_full/opencv",
         )
-    if any(c["scene"] == "board" for c in clips):
-        lines += [
-            "",
-            "Board clip: opencv has no board pose, so its errors there are its per-marker errors (the board's "
-            "four markers, each on its own); the trackers' are the board pose's.",
-        ]
+    )
+    return f"| {clip['label']} | {times} | {ratios} | {found} | {rot} | {verdict} |"
+
+
+def _per_marker(clips: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Each stage's cost per marker found, and the markers found per frame, for every pipeline and clip."""
+    lines = _table_section(
+        "Per marker (default threads)",
+        "ms per marker: the median over frames with at least one marker detected of (the stage's ms in that "
+        "frame / the markers that pipeline detected in it). Detection has a fixed per-frame part, so its "
+        "ms / marker falls as markers are added; pose and filter are the per-marker work. *found / frame*: "
+        "markers detected per frame, mean (min-max); the tracker's are its detections (ROI: in its regions).",
+        ["clip", "pipeline", "found / frame", "detect ms / marker", "pose ms / marker", "filter ms / marker",
+         "total ms / marker"],
+    )  # fmt: skip
+    for clip, pipe in _clip_pipelines(clips):
+        per, found = pipe.get("per_marker_ms", {}), pipe.get("found_per_frame", {})
+        cells = " | ".join(fmt(per.get(stage), 3) for stage in ("detect_ms", "pose_ms", "filter_ms", "total_ms"))
+        lines.append(
+            f"| {clip['label']} | {pipe['label']} | {fmt(found.get('mean'), 1)} ({fmt(found.get('min'), 0)}-"
+            f"{fmt(found.get('max'), 0)}) | {cells} |"
+        )
     return lines
 
 
@@ -280,8 +330,26 @@ def _memory(memory: Mapping[str, Any]) -> list[str]:
             f"{fmt(memory['rss_peak_end_to_end_mb'], 0)} MB (RSS when it started, the clips' frames freed: "
             f"{fmt(memory.get('rss_before_end_to_end_mb'), 0)} MB)"
         )
-    for label, mb in memory.get("tracemalloc_peak_mb", {}).items():
-        lines.append(f"- tracemalloc peak of a fresh tracker (ROI) over the first frames of {label}: {fmt(mb, 1)} MB")
+    return lines
+
+
+def _pipeline_memory(meta: Mapping[str, Any], clips: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Each pipeline's tracemalloc peak on every clip."""
+    if not any(c.get("peak_mb") for c in clips):
+        return []
+    lines = _table_section(
+        "Peak memory per pipeline",
+        "`tracemalloc` peak, MB: the Python-side allocations (NumPy arrays included; OpenCV's own C++ buffers "
+        f"not) of a fresh instance of each pipeline over the first {meta.get('memory_frames', '-')} frames of "
+        "each clip, run one pipeline at a time after the timing (the frames, allocated before, do not count). "
+        "An RSS delta cannot be split between pipelines that take turns in one process; the RSS figures above "
+        "are the whole run's.",
+        ["clip", *(PIPELINE_LABELS[key] for key in PIPELINES)],
+    )
+    for clip in clips:
+        peaks = clip.get("peak_mb") or {}
+        if peaks:
+            lines.append(f"| {clip['label']} | " + " | ".join(fmt(peaks.get(key), 2) for key in PIPELINES) + " |")
     return lines
 
 
@@ -301,27 +369,46 @@ def _how_measured(meta: Mapping[str, Any], clips: Sequence[Mapping[str, Any]]) -
         "pipeline alike: they take turns frame by frame).",
         "",
         f"Clips: synthetic ({meta['frames_per_clip']} frames at 30 fps, rendered before any timing, kept in memory), "
-        "5 cm DICT_4X4_50 markers on a cluttered wall, sensor noise "
+        "DICT_4X4_50 markers on a cluttered wall, sensor noise "
         f"{fmt(meta['noise'], 0)} grey levels (one Gaussian field per clip, shifted at random by up to "
-        f"{NOISE_SHIFT} px each frame), blur {fmt(meta['blur_px'], 1)} px; the camera orbits the markers "
-        "(azimuth +-35 deg, elevation +-15 deg, roll +-10 deg, up to 45 deg/s) at a constant distance: "
+        f"{NOISE_SHIFT} px each frame), blur {fmt(meta['blur_px'], 1)} px. One marker, eight markers, 2x2 board: "
+        "5 cm markers, the camera orbits them (azimuth +-35 deg, elevation +-15 deg, roll +-10 deg, up to 45 "
+        "deg/s) at a constant distance; the board's markers are 1 cm apart. 50 markers (720p only): 3 cm "
+        "markers, ids 0-49, on two 5x5 panels 1.5 cm apart hinged like an open book (each turned 20 deg toward "
+        "the viewer), a hand-held camera (sway, aim wander, tremor; no quick turns) at 0.6-0.75 m, all 50 in "
+        "view in every frame. "
         + "; ".join(
-            f"{SCENE_LABELS[c['scene']]} {fmt(c['distance_m'], 1)} m ({fmt(c['marker_px'], 0)} px markers "
-            f"at {c['size']})"
+            f"{c['label']}: {fmt(c['distance_m'], 2)}"
+            + (f"-{fmt(c['far_m'], 2)}" if c.get("far_m", c["distance_m"]) != c["distance_m"] else "")
+            + f" m ({fmt(c['marker_px'], 0)} px markers at the nearest)"
             for c in clips
+            if c.get("source", "synthetic") == "synthetic"
         )
-        + ". The 2x2 board: 5 cm markers, 1 cm apart. 720p: fx 1000 px; 1080p: fx 1480 px; no lens distortion.",
+        + ". 720p: fx 1000 px; 1080p: fx 1480 px; no lens distortion. Real: "
+        + (
+            "; ".join(
+                f"{c['label']} ({c['frames']} frames, decoded into memory before timing, its calibration "
+                f"intrinsics.yml, {c.get('dictionary')}, {fmt(c.get('marker_m'), 3)} m markers, every id, no "
+                "boards; no truth)"
+                for c in clips
+                if c.get("source") == "real"
+            )
+            or "none in this run"
+        )
+        + ".",
         "",
         "Pipelines: *opencv* is `ArucoDetector(dictionary, DetectorParameters())` on the grey image (conversion "
-        "counted in detect) and `solvePnP(SOLVEPNP_IPPE_SQUARE)` per detected marker (pose); no filter, no "
-        "corner refinement. The *tracker* runs its configured pipeline (edge-fitted corners, both IPPE "
-        "solutions, boards, flip-resolving filter) with ROI tracking off (*full frame*) or on (*ROI*, the "
-        "default); its stage times are its own `latency_ms`. The three pipelines take turns on each frame (the "
-        "one going first rotates), each on its own state; each first warms up on a throw-away instance over "
-        f"{meta['warmup_frames']} frames. Time: `time.perf_counter`. The *default threads* numbers run with "
-        f"OpenCV's own thread pool ({meta['opencv_threads']} threads); the *one core* numbers repeat the opencv "
-        "and tracker (ROI) loops after `cv2.setNumThreads(1)` (only OpenCV's threads are limited, not NumPy's "
-        "BLAS). Nothing else in the process runs during timing; the machine itself may be shared (load above).",
+        "counted in detect) and `solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)` per detected marker (pose; its first, "
+        "lower-reprojection-error solution); no filter. *opencv SUBPIX*: the same with "
+        "`cornerRefinementMethod = CORNER_REFINE_SUBPIX`. The *tracker* runs its configured pipeline "
+        "(edge-fitted corners, both IPPE solutions, boards, flip-resolving filter) with ROI tracking off (*full "
+        "frame*) or on (*ROI*, the default); its stage times are its own `latency_ms`. The four pipelines take "
+        "turns on each frame (the one going first rotates), each on its own state; each first warms up on a "
+        f"throw-away instance over {meta['warmup_frames']} frames. Time: `time.perf_counter`. The *default "
+        f"threads* numbers run with OpenCV's own thread pool ({meta['opencv_threads']} threads); the *one core* "
+        "numbers repeat the opencv and tracker (ROI) loops after `cv2.setNumThreads(1)` (only OpenCV's threads "
+        "are limited, not NumPy's BLAS). Nothing else in the process runs during timing; the machine itself "
+        "may be shared (load above).",
         "",
     ]
     return lines

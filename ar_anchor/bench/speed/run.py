@@ -23,16 +23,31 @@ from .measure import (
     ONE_THREAD_PIPELINES,
     PIPELINES,
     WARMUP_FRAMES,
-    pipeline_factories,
+    loop_factories,
     pipeline_result,
     pipeline_timing,
     primary_kind,
     ratio_opencv_over_roi,
+    ratios_tracker_over_plain,
     roi_check,
     time_pass,
 )
-from .memory import maxrss_mb, release_freed_memory, reset_peak_rss, rss_now_mb, tracemalloc_peak_mb
-from .scenes import BLUR, MARKER_M, NOISE, SCENES, SIZES, clip_label, render_clip, speed_config, speed_scene
+from .memory import loop_peak_mb, maxrss_mb, release_freed_memory, reset_peak_rss, rss_now_mb
+from .real_clip import CHESSBOARD, RealClip, load_chessboard
+from .scenes import (
+    BLUR,
+    EXTRA_CLIPS,
+    FIFTY,
+    FIFTY_SIZE,
+    MARKER_M,
+    NOISE,
+    SCENES,
+    SIZES,
+    clip_label,
+    render_clip,
+    speed_config,
+    speed_scene,
+)
 
 __all__ = ["run_speed_benchmark"]
 
@@ -44,34 +59,52 @@ def run_speed_benchmark(
     sizes: Sequence[Size] = SIZES,
     scenes: Sequence[str] = SCENES,
     *,
+    extra: Sequence[str] = EXTRA_CLIPS,
     config: TrackerConfig | None = None,
     one_thread: bool | str = True,
     end_to_end: bool = True,
     memory_frames: int = 30,
+    realdata: Path | None = None,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> dict[str, Any]:
-    """Time the three pipelines on every (size, scene) clip; return all numbers (see :mod:`ar_anchor.bench.speed`).
+    """Time the pipelines on every (size, scene) clip and the ``extra`` clips; return all numbers (see
+    :mod:`ar_anchor.bench.speed`).
 
-    ``sizes``: (width, height, fx) per clip size. ``scenes``: any of :data:`SCENES`. ``one_thread``: repeat
-    the opencv and tracker (ROI) loops with ``cv2.setNumThreads(1)`` (``"largest"``: at the largest size
-    only). ``end_to_end``: the decode -> track -> overlay -> log chain on the largest size's one-marker clip
-    (else its first scene). ``memory_frames``: frames of the tracemalloc pass (largest size; 0: none).
+    ``sizes``: (width, height, fx) per clip size. ``scenes``: any of :data:`SCENES`. ``extra``: any of
+    :data:`EXTRA_CLIPS` (``50markers`` at 720p; ``chessboard``, the real video, at most ``frames`` of it,
+    from ``realdata`` (default ``$AR_ANCHOR_REALDATA`` or ../shared/realdata), skipped with a note in
+    ``results["notes"]`` when absent). ``one_thread``: repeat the opencv and tracker (ROI) loops with
+    ``cv2.setNumThreads(1)`` (``"largest"``: at the largest size only). ``end_to_end``: the decode -> track
+    -> overlay -> log chain on the largest size's one-marker clip (else its first scene; none without
+    scenes). ``memory_frames``: frames of each pipeline's tracemalloc pass on every clip (0: none).
     """
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
     for key in scenes:
         if key not in SCENES:
             raise ValueError(f"unknown speed scene {key!r} (one of {', '.join(SCENES)})")
+    for key in extra:
+        if key not in EXTRA_CLIPS:
+            raise ValueError(f"unknown speed clip {key!r} (one of {', '.join(EXTRA_CLIPS)})")
     machine = machine_info()
+    base = config or TrackerConfig()
+    real: RealClip | str | None = None
+    if CHESSBOARD in extra:  # decoded first: the note, and the step count, depend on it
+        real = load_chessboard(base, frames, realdata)
+    notes = [real] if isinstance(real, str) else []
+    grid = [(tuple(size), key) for size in sizes for key in scenes]
+    fifty = FIFTY in extra
     plan = _Plan(
-        base=config or TrackerConfig(),
+        base=base,
         frames=frames,
-        largest=tuple(max(sizes, key=lambda s: s[0] * s[1])),
-        e2e_scene=("one" if "one" in scenes else scenes[0]) if end_to_end else None,
+        largest=tuple(max(sizes, key=lambda s: s[0] * s[1])) if sizes else FIFTY_SIZE,
+        e2e_scene=("one" if "one" in scenes else scenes[0]) if end_to_end and scenes and sizes else None,
         one_thread=one_thread,
         memory_frames=memory_frames,
         threads=cv2.getNumThreads(),
-        steps=_Steps(2 * len(sizes) * len(scenes) + (1 if end_to_end else 0), progress),
+        steps=_Steps(
+            2 * (len(grid) + fifty) + isinstance(real, RealClip) + (1 if end_to_end and grid else 0), progress
+        ),
     )
     memory: dict[str, Any] = {"rss_peak_at_start_mb": maxrss_mb(), "tracemalloc_peak_mb": {}}
     start = time.perf_counter()
@@ -79,13 +112,16 @@ def run_speed_benchmark(
         tmp = Path(tmp_name)
         clips: list[dict[str, Any]] = []
         e2e_input: _EndToEndInput | None = None
-        for size in sizes:
-            for scene_key in scenes:
-                clip, e2e_clip = _measure_clip(plan, tuple(size), scene_key, tmp, memory)
-                clips.append(clip)
-                e2e_input = e2e_clip or e2e_input
+        for size, scene_key in grid + ([(FIFTY_SIZE, FIFTY)] if fifty else []):
+            clip, e2e_clip = _synthetic_clip(plan, size, scene_key, tmp, memory)
+            clips.append(clip)
+            e2e_input = e2e_clip or e2e_input
+        if isinstance(real, RealClip):
+            clips.append(_real_clip(plan, real, memory))
+            del real
+            release_freed_memory()
         memory["rss_peak_with_frames_mb"] = maxrss_mb()
-        memory["largest_frame_store_mb"] = max(c["frame_store_mb"] for c in clips)
+        memory["largest_frame_store_mb"] = max((c["frame_store_mb"] for c in clips), default=0.0)
         e2e_result = _end_to_end(plan, e2e_input, tmp, memory) if e2e_input is not None else None
     wall = time.perf_counter() - start
     machine["load_average_end"] = load_average()
@@ -94,12 +130,15 @@ def run_speed_benchmark(
             "frames_per_clip": frames,
             "sizes": [list(s) for s in sizes],
             "scenes": list(scenes),
+            "extra_clips": list(extra),
             "warmup_frames": WARMUP_FRAMES,
+            "memory_frames": memory_frames,
             "noise": NOISE,
             "blur_px": BLUR,
             "wall_time_s": wall,
             **machine,
         },
+        "notes": notes,
         "clips": clips,
         "end_to_end": e2e_result,
         "memory": memory,
@@ -142,55 +181,129 @@ class _EndToEndInput:
     truths: list[Mapping[str, Pose]]
 
 
-def _measure_clip(
+@dataclass(frozen=True)
+class _ClipInput:
+    """One clip ready to time: its frames in memory (with truth, or empty truths for real video), the
+    camera, the tracker configs (ROI off and on) and its fixed fields in the report."""
+
+    label: str
+    scene_key: str
+    frames: list[Frame]
+    truths: list[Mapping[str, Pose]]
+    camera: CameraModel
+    full: TrackerConfig
+    roi: TrackerConfig
+    has_truth: bool
+    record: dict[str, Any]  # fields of the clip's record known before timing
+
+
+def _synthetic_clip(
     plan: _Plan, size: Size, scene_key: str, tmp: Path, memory: dict[str, Any]
 ) -> tuple[dict[str, Any], _EndToEndInput | None]:
-    """Render one clip, time the pipelines on it (and the one-core pass, and tracemalloc at the largest
-    size); the clip's record, and the end-to-end input when this is its clip."""
+    """Render one synthetic clip and time it; its record, and the end-to-end input when this is its clip."""
     width, height, focal = size
     camera = CameraModel.from_fov(width, height, focal)
     label = clip_label(height, scene_key)
     scene = speed_scene(scene_key, camera, plan.frames)
-    at_largest = size == plan.largest
-    video = tmp / "clip.mp4" if at_largest and scene_key == plan.e2e_scene else None
+    video = tmp / "clip.mp4" if size == plan.largest and scene_key == plan.e2e_scene else None
     plan.steps.report(f"{label}: rendering")
     render_start = time.perf_counter()
     clip_frames = _render(scene, video)
     render_s = time.perf_counter() - render_start
     truths = [dict(f.truth or {}) for f in clip_frames]
-    plan.steps.report(f"{label}: timing")
-    series = time_pass(clip_frames, pipeline_factories(plan.base, scene, PIPELINES))
-    pipelines = {key: pipeline_result(key, series[key], truths, plan.threads) for key in PIPELINES}
-    del series
-    single: dict[str, Any] = {}
-    if plan.one_thread and (plan.one_thread != "largest" or at_largest):
-        single = _one_thread_pass(plan, scene, clip_frames)
-    if plan.memory_frames > 0 and at_largest:
-        memory["tracemalloc_peak_mb"][label] = tracemalloc_peak_mb(
-            clip_frames[: plan.memory_frames], speed_config(plan.base, scene, roi=True), camera
-        )
-    clip = {
-        "label": label,
+    length_m = scene.markers[0].length_m if scene.markers else MARKER_M
+    record = {
         "size": f"{height}p",
         "width": width,
         "height": height,
         "fx": focal,
-        "scene": scene_key,
-        "frames": plan.frames,
+        "source": "synthetic",
         "distance_m": scene.trajectory.near_m,
-        "marker_px": focal * MARKER_M / scene.trajectory.near_m,
+        "far_m": scene.trajectory.far_m if scene.trajectory.kind == "handheld" else scene.trajectory.near_m,
+        "marker_m": length_m,
+        "marker_px": focal * length_m / scene.trajectory.near_m,
+        "markers_in_scene": len(scene.markers) + sum(len(b.board.marker_ids) for b in scene.boards),
         "render_s": render_s,
-        "frame_store_mb": sum(f.image.nbytes for f in clip_frames) / 1e6,
+    }
+    clip_input = _ClipInput(
+        label,
+        scene_key,
+        clip_frames,
+        truths,
+        camera,
+        speed_config(plan.base, scene, roi=False),
+        speed_config(plan.base, scene, roi=True),
+        True,
+        record,
+    )
+    del clip_frames
+    clip = _measure_clip(plan, clip_input, memory)
+    return clip, (_EndToEndInput(label, video, scene, truths) if video is not None else None)
+
+
+def _real_clip(plan: _Plan, real: RealClip, memory: dict[str, Any]) -> dict[str, Any]:
+    """Time the pipelines on the decoded real video (no truth)."""
+    width, height = real.camera.size
+    record = {
+        "size": f"{height}p",
+        "width": width,
+        "height": height,
+        "fx": float(real.camera.camera_matrix[0, 0]),
+        "source": "real",
+        "video": real.video.name,
+        "marker_m": real.full.markers.length_m,
+        "dictionary": real.full.detector.dictionary,
+    }
+    frames = list(real.frames)
+    clip_input = _ClipInput(
+        f"{height}p {real.video.name}",
+        CHESSBOARD,
+        frames,
+        [{} for _ in frames],
+        real.camera,
+        real.full,
+        real.roi,
+        False,
+        record,
+    )
+    return _measure_clip(plan, clip_input, memory)
+
+
+def _measure_clip(plan: _Plan, clip: _ClipInput, memory: dict[str, Any]) -> dict[str, Any]:
+    """Time the pipelines on one clip's frames (and the one-core pass, and each pipeline's tracemalloc
+    peak); the clip's record."""
+    plan.steps.report(f"{clip.label}: timing")
+    factories = loop_factories(clip.full, clip.roi, clip.camera, PIPELINES)
+    series = time_pass(clip.frames, factories)
+    pipelines = {key: pipeline_result(key, series[key], clip.truths, plan.threads) for key in PIPELINES}
+    del series
+    at_largest = (clip.record["width"], clip.record["height"], clip.record["fx"]) == plan.largest
+    single: dict[str, Any] = {}
+    if plan.one_thread and (plan.one_thread != "largest" or at_largest):
+        single = _one_thread_pass(plan, clip)
+    peaks: dict[str, float] = {}
+    if plan.memory_frames > 0:
+        peaks = {key: loop_peak_mb(make, clip.frames[: plan.memory_frames]) for key, make in factories.items()}
+        memory["tracemalloc_peak_mb"][clip.label] = peaks["tracker_roi"]
+    out = {
+        "label": clip.label,
+        "scene": clip.scene_key,
+        "frames": len(clip.frames),
+        **clip.record,
+        "has_truth": clip.has_truth,
+        "frame_store_mb": sum(f.image.nbytes for f in clip.frames) / 1e6,
         "pipelines": pipelines,
         "one_thread": single,
+        "peak_mb": peaks,
         "ratio_opencv_over_roi": ratio_opencv_over_roi(pipelines["opencv"], pipelines["tracker_roi"]),
-        "roi_vs_full": roi_check(pipelines["tracker_full"], pipelines["tracker_roi"], primary_kind(scene_key)),
+        "ratios": ratios_tracker_over_plain(pipelines),
+        "roi_vs_full": roi_check(pipelines["tracker_full"], pipelines["tracker_roi"], primary_kind(clip.scene_key)),
     }
     if single:
-        clip["ratio_opencv_over_roi_one_thread"] = ratio_opencv_over_roi(single["opencv"], single["tracker_roi"])
-    del clip_frames
+        out["ratio_opencv_over_roi_one_thread"] = ratio_opencv_over_roi(single["opencv"], single["tracker_roi"])
+    clip.frames.clear()
     release_freed_memory()
-    return clip, (_EndToEndInput(label, video, scene, truths) if video is not None else None)
+    return out
 
 
 def _render(scene: SyntheticScene, video: Path | None) -> list[Frame]:
@@ -203,11 +316,11 @@ def _render(scene: SyntheticScene, video: Path | None) -> list[Frame]:
         return render_clip(scene, writer.write)
 
 
-def _one_thread_pass(plan: _Plan, scene: SyntheticScene, clip_frames: Sequence[Frame]) -> dict[str, Any]:
+def _one_thread_pass(plan: _Plan, clip: _ClipInput) -> dict[str, Any]:
     """The one-core comparison: the :data:`ONE_THREAD_PIPELINES` again with ``cv2.setNumThreads(1)``."""
     cv2.setNumThreads(1)
     try:
-        series = time_pass(clip_frames, pipeline_factories(plan.base, scene, ONE_THREAD_PIPELINES))
+        series = time_pass(clip.frames, loop_factories(clip.full, clip.roi, clip.camera, ONE_THREAD_PIPELINES))
     finally:
         cv2.setNumThreads(plan.threads)
     return {key: pipeline_timing(key, series[key], 1) for key in ONE_THREAD_PIPELINES}

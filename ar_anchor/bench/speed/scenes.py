@@ -19,21 +19,35 @@ from ...synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
 
 __all__ = [
     "BLUR",
+    "EXTRA_CLIPS",
+    "FIFTY",
+    "FIFTY_MARKER_M",
+    "FIFTY_SIZE",
     "MARKER_M",
     "NOISE",
     "NOISE_SHIFT",
     "SCENES",
     "SCENE_LABELS",
     "SIZES",
+    "CLIP_NAMES",
     "clip_label",
+    "fifty_markers_scene",
     "render_clip",
     "speed_config",
     "speed_scene",
+    "split_clips",
 ]
 
 SIZES: tuple[tuple[int, int, float], ...] = ((1280, 720, 1000.0), (1920, 1080, 1480.0))  # width, height, fx
 SCENES: tuple[str, ...] = ("one", "eight", "board")
-SCENE_LABELS = {"one": "one marker", "eight": "eight markers", "board": "2x2 board"}
+SCENE_LABELS = {"one": "one marker", "eight": "eight markers", "board": "2x2 board", "50markers": "50 markers"}
+FIFTY = "50markers"  # the many-marker clip (720p only) ...
+EXTRA_CLIPS: tuple[str, ...] = (FIFTY, "chessboard")  # ... and the real video: clips beside the size x scene grid
+CLIP_NAMES: tuple[str, ...] = SCENES + EXTRA_CLIPS  # what ``--clips`` takes
+FIFTY_SIZE = (1280, 720, 1000.0)
+FIFTY_MARKER_M = 0.03
+FIFTY_PANEL_DEG = 20.0  # each 5x5 panel turned this much about the vertical hinge between them (an open book)
+FIFTY_GAP_M = 0.015
 
 MARKER_M = 0.05
 NOISE = 2.0  # grey levels
@@ -47,6 +61,8 @@ _FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # board frame (y down, z into the wall) o
 def speed_scene(kind: str, camera: CameraModel, frames: int, seed: int = 0) -> SyntheticScene:
     """One of the benchmark's clips: ``one`` marker, ``eight`` markers or a 2x2 ``board`` (all 5 cm
     markers), seen by a camera orbiting at 0.6-0.7 m (up to 45 deg/s), sensor noise 2, blur 0.6 px."""
+    if kind == FIFTY:
+        return fifty_markers_scene(camera, frames, seed)
     markers: tuple[PlacedMarker, ...] = ()
     boards: tuple[PlacedBoard, ...] = ()
     if kind == "one":
@@ -63,7 +79,7 @@ def speed_scene(kind: str, camera: CameraModel, frames: int, seed: int = 0) -> S
         boards = (PlacedBoard(board, Pose.from_matrix(_FLIP_YZ, np.array([-width / 2, height / 2, 0.0]))),)
         near = 0.6
     else:
-        raise ValueError(f"unknown speed scene {kind!r} (one of {', '.join(SCENES)})")
+        raise ValueError(f"unknown speed scene {kind!r} (one of {', '.join(SCENES + (FIFTY,))})")
     seconds = frames / FPS
     azimuth = 35.0
     trajectory = Trajectory(
@@ -87,6 +103,48 @@ def speed_scene(kind: str, camera: CameraModel, frames: int, seed: int = 0) -> S
     )
 
 
+def fifty_markers_scene(camera: CameraModel, frames: int, seed: int = 0) -> SyntheticScene:
+    """The many-marker clip: 50 markers of 3 cm (ids 0-49, all of DICT_4X4_50) on two 5x5 panels hinged
+    like an open book (each turned 20 deg toward the viewer), seen by a hand-held camera at 0.6-0.75 m
+    (sway, aim wander, tremor; no quick turns, so every marker stays in view: 40-50 px wide at 720p)."""
+    step = FIFTY_MARKER_M + FIFTY_GAP_M
+    panel = 5 * step - FIFTY_GAP_M
+    markers = []
+    for side, sign in ((0, -1.0), (1, 1.0)):  # left panel (ids 0-24), right panel (ids 25-49)
+        angle = math.radians(FIFTY_PANEL_DEG) * -sign  # the left panel's normal turns toward +x
+        rotation = np.array([0.0, angle, 0.0])
+        along = np.array([math.cos(angle), 0.0, -math.sin(angle)])  # the panel's x axis in the world
+        for k in range(25):
+            row, col = divmod(k, 5)
+            # distance from the hinge along the panel (the left panel runs leftwards from it)
+            offset = FIFTY_GAP_M / 2 + FIFTY_MARKER_M / 2 + (col if sign > 0 else 4 - col) * step
+            centre = sign * offset * along + np.array([0.0, panel / 2 - FIFTY_MARKER_M / 2 - row * step, 0.0])
+            markers.append(PlacedMarker(25 * side + k, FIFTY_MARKER_M, Pose(rotation, centre)))
+    trajectory = Trajectory(
+        kind="handheld",
+        near_m=0.6,
+        far_m=0.75,
+        azimuth_deg=20.0,
+        elevation_deg=12.0,
+        roll_deg=8.0,
+        turn_deg=0.0,
+        aim_m=0.02,
+        look_at=(0.0, 0.0, 0.03),
+        seed=seed,
+        duration_s=frames / FPS,
+    )
+    return SyntheticScene(
+        camera=camera,
+        markers=tuple(markers),
+        trajectory=trajectory,
+        frames=frames,
+        fps=FPS,
+        seed=seed,
+        noise_sigma=NOISE,
+        blur_sigma=BLUR,
+    )
+
+
 def speed_config(base: TrackerConfig, scene: SyntheticScene, *, roi: bool) -> TrackerConfig:
     """``base`` set up for ``scene`` (dictionary, marker lengths, boards; filter on), ROI tracking on or off."""
     lengths = {m.marker_id: m.length_m for m in scene.markers}
@@ -94,7 +152,10 @@ def speed_config(base: TrackerConfig, scene: SyntheticScene, *, roi: bool) -> Tr
         base,
         detector=dataclasses.replace(base.detector, dictionary=scene.dictionary, roi=roi),
         markers=dataclasses.replace(
-            base.markers, length_m=MARKER_M, lengths_m=lengths, ids=tuple(sorted(lengths)) if lengths else ()
+            base.markers,
+            length_m=next(iter(lengths.values()), MARKER_M),
+            lengths_m=lengths,
+            ids=tuple(sorted(lengths)) if lengths else (),
         ),
         boards=tuple(b.board for b in scene.boards),
         filter=dataclasses.replace(base.filter, enabled=True),
@@ -140,3 +201,17 @@ def render_clip(
 def clip_label(height: int, scene_key: str) -> str:
     """A clip's name in the report: "720p one marker"."""
     return f"{height}p {SCENE_LABELS[scene_key]}"
+
+
+def split_clips(names: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``--clips one,50markers``: the scenes (run at every size) and the extra clips named, in
+    :data:`CLIP_NAMES` order; ``ValueError`` naming an unknown or missing name."""
+    wanted = [name.strip() for name in names.split(",") if name.strip()]
+    unknown = [name for name in wanted if name not in CLIP_NAMES]
+    if unknown or not wanted:
+        got = f"unknown clip {unknown[0]!r}" if unknown else "no clip named"
+        raise ValueError(f"{got} (comma-separated, any of {','.join(CLIP_NAMES)})")
+    return (
+        tuple(name for name in SCENES if name in wanted),
+        tuple(name for name in EXTRA_CLIPS if name in wanted),
+    )
