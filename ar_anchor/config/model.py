@@ -263,6 +263,18 @@ class RecordingConfig:
         "together: rerun recording*.rrd",
         in_range(0.0, 1e6),
     )
+    overlay_images: bool = key(
+        False,
+        "also draw the overlay into each logged image (camera/overlay; costs the output thread a render and a "
+        "JPEG per frame): the viewer's AR overlay view projects the 3D overlay onto the frame itself, but "
+        "without lens distortion",
+    )
+    metrics_every: int = key(
+        10,
+        "send the plotted metrics (metrics/*) every N frames, each series' N values in one call: every "
+        "frame's value is kept; a live viewer shows them up to N frames late (1: every frame)",
+        in_range(1, 1000),
+    )
 
 
 OVERLAY_KINDS = ("cube", "mesh", "axes")

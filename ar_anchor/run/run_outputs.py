@@ -120,7 +120,8 @@ class RunOutputs:
     ) -> None:
         """Open the recording, ``poses.csv``, ``raw.mkv``, the annotated video and the output thread, in
         this order. ``renderer`` draws the overlays (None: none drawn); ``info``: the source's, for the
-        output thread's policy (live: never make the tracker wait) and the recording's video reference."""
+        output thread's policy (live: never make the tracker wait) and the recording's video reference.
+        The recording holds the overlay models (the viewer projects them onto the frame) unless ``--no-overlay``."""
         options = self._options
         self._live = info.live
         self._renderer = renderer
@@ -131,7 +132,7 @@ class RunOutputs:
             spawn=options.spawn,
             connect=options.connect,
             recording_name=options.recording_name,
-            overlay_models=renderer.models_for if renderer is not None else None,
+            overlay_models=renderer.models_for if renderer is not None and options.overlays else None,
         )
         self.image_logging = "jpeg"
         if info.video_path is not None and self._recorder.use_video(info.video_path, info.frame_count):
@@ -177,17 +178,20 @@ class RunOutputs:
         return self._first_failure or err
 
     def _draw_and_log(self, frame: Frame, result: FrameResult, stages: dict[str, float]) -> dict[str, float]:
-        """The overlay, ``--video-out`` and the rerun log of one frame (in the output thread)."""
+        """The overlay, ``--video-out`` and the rerun log of one frame (in the output thread). The overlay is
+        rasterised only for ``--video-out`` and ``[recording] overlay_images`` (not with ``--no-overlay``):
+        the viewer draws the recording's own from its 3D models."""
         recorder = self._recorder
         assert recorder is not None
         t0 = time.perf_counter()
         annotated = None
-        if self._renderer is not None and (self._video is not None or recorder.wants_image(frame)):
+        overlay_image = self._options.overlays and recorder.wants_overlay_image(frame)
+        if self._renderer is not None and (self._video is not None or overlay_image):
             annotated = self._renderer.annotate(frame.image, result)
         t1 = time.perf_counter()
         if self._video is not None:
             self._video.write(annotated)
-        recorder.log_frame(frame, result, annotated, stages=stages)
+        recorder.log_frame(frame, result, annotated if overlay_image else None, stages=stages)
         t2 = time.perf_counter()
         measured = {"render_ms": (t1 - t0) * 1e3, "log_ms": (t2 - t1) * 1e3}
         recorder.log_latency(measured)

@@ -6,23 +6,38 @@ from collections.abc import Sequence
 
 import rerun.blueprint as rrb
 
-__all__ = ["calibrate_blueprint", "run_blueprint", "study_blueprint"]
+__all__ = ["PROJECTED", "calibrate_blueprint", "run_blueprint", "study_blueprint"]
+
+PROJECTED = (  # the "AR overlay" view's contents: the camera's image, and the 3D world projected onto it
+    "+ $origin/**",
+    "+ /world/**",
+    "- /world/camera_trajectory",
+    "- /world/hypotheses",
+    "- /world/truth_camera",
+)
 
 
-def run_blueprint() -> rrb.Blueprint:
-    """A tracker run: image, 3D scene and plots side by side, the tracker's events below.
+def run_blueprint(*, overlay_image: bool = False) -> rrb.Blueprint:
+    """A tracker run: the camera, 3D scene and plots side by side, the tracker's events below.
 
-    The 3D eye starts in front of the anchor (a marker frame: y up, z toward the viewer), a
-    decimetre grid gives scale; the ambiguity plot shows 1..5 (values near 1 are the ambiguous
-    ones; the data itself is not clipped).
+    The camera views' origin is the camera's pinhole (``world/camera``), the image its child. "AR overlay"
+    also holds the 3D world, which the viewer projects through the pinhole onto the frame: the targets'
+    overlay meshes, marker squares and axes (not the camera's own trajectory, the filter's hypotheses or
+    the true camera). "Camera" is the frame and its 2D detections alone; "Overlay image" (``overlay_image``:
+    ``[recording] overlay_images``) the annotated image the run drew itself. The 3D eye starts in front of
+    the anchor (a marker frame: y up, z toward the viewer), a decimetre grid gives scale; the ambiguity plot
+    shows 1..5 (values near 1 are the ambiguous ones; the data itself is not clipped).
     """
+    camera_views = [
+        rrb.Spatial2DView(origin="world/camera", contents=list(PROJECTED), name="AR overlay"),
+        rrb.Spatial2DView(origin="world/camera", contents="$origin/**", name="Camera"),
+    ]
+    if overlay_image:
+        camera_views.append(rrb.Spatial2DView(origin="camera/overlay", name="Overlay image"))
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
-                rrb.Tabs(
-                    rrb.Spatial2DView(origin="camera/image", name="Camera"),
-                    rrb.Spatial2DView(origin="camera/overlay", name="AR overlay"),
-                ),
+                rrb.Tabs(*camera_views),
                 rrb.Spatial3DView(
                     origin="world",
                     name="3D scene",

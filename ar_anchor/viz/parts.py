@@ -19,12 +19,14 @@ def entity_name(target: str) -> str:
     return TargetId.parse(target).path_part
 
 
-def closed_squares(target: TargetResult) -> list[np.ndarray]:
-    """The target's marker squares as closed 3D line strips in its own frame."""
+def closed_squares(target: TargetResult) -> np.ndarray:
+    """The target's marker squares as closed 3D line strips in its own frame, (S, 5, 3) (one array: rerun
+    takes strips of one length without a conversion per strip)."""
     quads = target.outline_in_target
     if quads is None:
         quads = marker_corners_in_marker(target.length_m)[None]
-    return [np.vstack([quad, quad[:1]]) for quad in np.asarray(quads, np.float64).reshape(-1, 4, 3)]
+    quads = np.asarray(quads, np.float64).reshape(-1, 4, 3)
+    return np.concatenate([quads, quads[:, :1]], axis=1)
 
 
 def mesh3d(model: Any) -> rr.Mesh3D:

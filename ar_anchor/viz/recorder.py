@@ -2,23 +2,39 @@
 
 Entity tree
 -----------
-``camera/image``                  the frame (JPEG or a reference into the source video), with ``markers``
-                                  outlines + ids and ``corners``
-``camera/overlay``                the annotated image (when overlays are drawn)
-``world``                         the anchor target's frame (the first target that gets a pose)
+``world``                         the anchor target's frame (the first target that gets a pose): its marker
+                                  squares (``outline``), ``axes``, ``label`` and ``overlay/<n>`` meshes
 ``world/camera``                  ``world_from_camera`` (so the camera centre is ``C = -R^T t``) + ``Pinhole``
+``world/camera/image``            the frame (JPEG or a reference into the source video), with ``markers``
+                                  outlines + ids, ``corners`` and ``boards/<board>/inliers|outliers`` (the
+                                  corners a board's pose used / rejected), all in the frame's own pixels
 ``world/camera_trajectory``       the camera centre's recent path
-``world/targets/<target>``        ``world_from_target`` of every other target, drawn as its marker squares + axes
-``camera/image/boards/<board>/inliers|outliers``  the corners a board's pose used / rejected
-``metrics/inliers/<board>``       corners a board's pose was solved from
+``world/targets/<target>``        ``world_from_target`` of every other target, drawn as its marker squares,
+                                  axes, label and ``overlay/<n>`` meshes
+``world/hypotheses``              this frame's solution on each filter branch of every target, faint
 ``world/truth_camera``            the true camera centre (synthetic sources)
+``camera/overlay``                the annotated image, only with ``[recording] overlay_images``
 ``metrics/reproj_px/<target>``    RMS reprojection error of the output pose
 ``metrics/ambiguity/<target>``    IPPE error ratio (worse / better; near 1 = ambiguous)
+``metrics/inliers/<target>``      corners a board's pose was solved from
+``metrics/flip_evidence_px/<target>``  the filter's flip evidence (signed: + favours branch 0)
 ``metrics/rotation_error_deg/<target>``  against ground truth, when known
 ``metrics/latency/<stage>``       per-stage time, milliseconds
-``metrics/flip_evidence_px/<target>``  the filter's flip evidence (signed: + favours branch 0)
-``world/hypotheses/<target>/branch_<k>``  this frame's solution on each filter branch, faint
 ``events``                        state changes, commits, switches, re-acquisitions, resets (TextLog)
+
+The AR overlay is drawn by the viewer: the image is a child of the camera's ``Pinhole``, and the run's
+blueprint shows it in a 2D view whose origin is that pinhole and whose contents include the 3D world, so
+the viewer projects the targets' meshes, squares and axes onto the frame (:mod:`.blueprints`). Nothing
+is rasterised for it: drawing the overlay into an image (:mod:`ar_anchor.render.overlay`) is left to
+``--video-out`` and ``overlay_images``. The viewer's pinhole has no lens distortion: the projected overlay
+is drawn where an undistorted camera would see it, off by up to the lens's distortion at the image's
+edges (logged once in ``events``), while the image and its 2D detections stay in the camera's own
+(distorted) pixels. While the anchor is out of view the camera is held where it was last seen and the
+other targets are placed from it, so the projection onto the frame stays right (their ``world`` places are
+then relative to that held camera).
+
+The ``metrics/*`` series are sent every ``metrics_every`` frames, one call per series holding every
+frame's value (:mod:`.series`); the 3D scene and images every frame.
 
 A target that is gone (no longer in a frame's results) is cleared once, on that frame, from every
 entity above that is its own; it is drawn again when it comes back. The anchor's shape is the
@@ -26,7 +42,8 @@ entity above that is its own; it is drawn again when it comes back. The anchor's
 
 Timelines: ``frame`` (sequence) and ``time`` (seconds since the stream's start).
 Rerun places pixel *corners* at integers, OpenCV pixel *centres*: 2D positions are shifted by
-half a pixel (see :mod:`.sinks`) so overlays sit exactly on the image.
+half a pixel (see :mod:`.sinks`), and so is the pinhole's principal point, so overlays sit exactly on
+the image.
 """
 
 from __future__ import annotations
@@ -39,6 +56,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import rerun as rr
 
@@ -50,9 +68,10 @@ from ..targets import TargetId, TrackState
 from ..track.tracker import FrameResult, TargetResult
 from .blueprints import run_blueprint
 from .parts import closed_squares, entity_name, mesh3d
+from .series import SeriesBuffer
 from .sinks import Recording
 
-__all__ = ["RerunRecorder"]
+__all__ = ["IMAGE", "OVERLAY_IMAGE", "RerunRecorder", "image_from_camera"]
 
 log = logging.getLogger(__name__)
 
@@ -62,8 +81,11 @@ _STATE_COLOURS = {
     TrackState.PREDICTED: (120, 120, 255),
 }
 _FAILED_COLOUR = (255, 60, 60)
+_BRANCH_COLOURS = np.array([(90, 200, 255, 90), (255, 140, 60, 90)], np.uint8)  # the filter's branch 0, 1
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
+IMAGE = "world/camera/image"  # the frame, under the camera's pinhole (where the viewer projects the 3D scene)
+OVERLAY_IMAGE = "camera/overlay"  # the annotated image (``overlay_images``), outside the projected world
 
 
 class RerunRecorder:
@@ -88,17 +110,24 @@ class RerunRecorder:
         self.camera = camera
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
         self.overlay_models = overlay_models
+        blueprint = run_blueprint(overlay_image=self.settings.overlay_images)
         self.recording = Recording(
-            "ar_anchor", path=rrd_path, spawn=spawn, connect=connect, blueprint=run_blueprint(), name=recording_name
+            "ar_anchor", path=rrd_path, spawn=spawn, connect=connect, blueprint=blueprint, name=recording_name
         )
+        self.series = SeriesBuffer(self.recording, self.settings.metrics_every)
         self._part_started = time.monotonic()
         self.anchor: TargetId | None = None
         self._shapes_logged: set[TargetId] = set()  # targets whose shape is in the current part and not cleared
         self._drawn: dict[TargetId, set[str]] = {}  # a target -> its entities logged since it was last cleared
+        self._meshes: dict[TargetId, list[rr.Mesh3D]] = {}  # a target -> its overlay models as meshes
         self._video_frame_ns: np.ndarray | None = None
         self._video_asset: rr.AssetVideo | None = None
         self._states: dict[TargetId, TrackState] = {}
         self._trajectory: list[np.ndarray] = []
+        self._world_from_camera: Pose | None = None  # the camera where the anchor last placed it
+        self._hypotheses_drawn = False
+        self._distortion_note = _distortion_note(camera)  # logged in each part's first frame
+        self._note_due = self._distortion_note is not None
         self._last_check = time.monotonic()
         self._log_static_camera(camera)
 
@@ -113,12 +142,14 @@ class RerunRecorder:
         part also opens alone. Bounds the file writer's memory on long runs (see ``part_minutes``)."""
         assert self.rrd_path is not None
         path = self.rrd_path.with_name(f"{self.rrd_path.stem}.part{len(self.parts) + 1}{self.rrd_path.suffix}")
+        self.series.flush()  # the metrics kept so far belong to the file that ends
         self.recording.next_file(path)
         self._part_started = time.monotonic()
         self._log_static_camera(self.camera)
         self._shapes_logged.clear()  # each target's shape (the anchor's too) goes into the new part when seen
+        self._note_due = self._distortion_note is not None
         if self._video_asset is not None:
-            self.recording.log("camera/image", self._video_asset, static=True)
+            self.recording.log(IMAGE, self._video_asset, static=True)
 
     def use_video(self, path: str | os.PathLike[str], expected_frames: int | None = None) -> bool:
         """Reference the source video itself (``AssetVideo`` + ``VideoFrameReference``) instead of
@@ -136,18 +167,23 @@ class RerunRecorder:
         if frame_ns.size == 0 or (expected_frames is not None and frame_ns.size != expected_frames):
             log.info("%s: rerun sees %d frames, OpenCV %s; logging JPEG frames", path, frame_ns.size, expected_frames)
             return False
-        self.recording.log("camera/image", asset, static=True)
+        self.recording.log(IMAGE, asset, static=True)
         self._video_asset = asset
         self._video_frame_ns = frame_ns
+        self._log_static_camera(self.camera)  # the pinhole of the full-resolution video
         return True
 
     # ------------------------------------------------------------------ shapes
     def _log_static_camera(self, camera: CameraModel) -> None:
+        """The camera's ``Pinhole``, in the pixels of the image logged under it: scaled by ``image_scale``
+        (not for a referenced video, which is the original) and with the principal point half a pixel
+        further (rerun's pixel corners at integers) so that what the viewer projects sits on the image."""
+        scale = 1.0 if self._video_asset is not None else self.settings.image_scale
         self.recording.log(
             "world/camera",
             rr.Pinhole(
-                image_from_camera=np.asarray(camera.camera_matrix),
-                resolution=[camera.width, camera.height],
+                image_from_camera=image_from_camera(camera, scale),
+                resolution=[camera.width * scale, camera.height * scale],
                 camera_xyz=rr.ViewCoordinates.RDF,
                 image_plane_distance=0.1,
             ),
@@ -169,8 +205,10 @@ class RerunRecorder:
         log_(f"{path}/axes", rr.TransformAxes3D(axis_length=length_m * 0.75), static=is_anchor)
         log_(f"{path}/label", rr.Points3D([[0, 0, 0]], labels=[name], radii=[length_m / 40]), static=is_anchor)
         if self.overlay_models is not None:
-            for index, placed in enumerate(self.overlay_models(target)):
-                log_(f"{path}/overlay/{index}", mesh3d(placed.model), static=is_anchor)
+            if name not in self._meshes:  # built once per target: it comes back with the same models
+                self._meshes[name] = [mesh3d(placed.model) for placed in self.overlay_models(target)]
+            for index, mesh in enumerate(self._meshes[name]):
+                log_(f"{path}/overlay/{index}", mesh, static=is_anchor)
         self._shapes_logged.add(name)
 
     def _own(self, name: TargetId, entity: str) -> str:
@@ -188,9 +226,13 @@ class RerunRecorder:
 
     # ------------------------------------------------------------------ per frame
     def wants_image(self, frame: Frame) -> bool:
-        """Is an image logged for this frame (so an overlay image is worth drawing)?"""
+        """Is an image logged for this frame?"""
         every = self.settings.image_every
         return bool(every) and frame.index % every == 0
+
+    def wants_overlay_image(self, frame: Frame) -> bool:
+        """Is an annotated image logged for this frame (``overlay_images``), so worth drawing?"""
+        return self.settings.overlay_images and self.wants_image(frame)
 
     def log_frame(
         self,
@@ -200,24 +242,29 @@ class RerunRecorder:
         stages: Mapping[str, float] | None = None,
     ) -> None:
         """Log one frame: the image (or its video reference), detections, the 3D scene, metrics, and
-        ``overlay`` (the annotated image, when given) under ``camera/overlay``. ``stages``: the run
-        loop's per-frame times (ms) beside the tracker's own, all under ``metrics/latency/``."""
+        ``overlay`` (the annotated image, when given and ``overlay_images`` is set) under ``camera/overlay``.
+        ``stages``: the run loop's per-frame times (ms) beside the tracker's own, all under
+        ``metrics/latency/``."""
         part_s = 60.0 * self.settings.part_minutes
         if self.parts and part_s > 0 and time.monotonic() - self._part_started >= part_s:
             self._next_part()
         recording = self.recording
         recording.time("frame", sequence=frame.index)
         recording.time("time", seconds=frame.timestamp_ns * 1e-9)
+        self.series.at(frame.index, frame.timestamp_ns * 1e-9)
+        if self._note_due and self._distortion_note is not None:
+            self._note_due = False
+            recording.text("events", self._distortion_note)
         scale = self.settings.image_scale
         if self._video_frame_ns is not None:
             scale = 1.0  # the referenced video is the full-resolution original
             if frame.index < self._video_frame_ns.size:
                 ns = int(self._video_frame_ns[frame.index])
-                recording.log("camera/image", rr.VideoFrameReference(nanoseconds=ns))
+                recording.log(IMAGE, rr.VideoFrameReference(nanoseconds=ns))
         elif self.wants_image(frame):
-            self._log_jpeg("camera/image", frame.image)
-        if overlay is not None and self.wants_image(frame):
-            self._log_jpeg("camera/overlay", overlay)
+            self._log_jpeg(IMAGE, frame.image)
+        if overlay is not None and self.wants_overlay_image(frame):
+            self._log_jpeg(OVERLAY_IMAGE, overlay)
         self._clear_gone(result)
         self._log_detections(result, scale)
         self._log_world(result, frame.truth)
@@ -228,35 +275,35 @@ class RerunRecorder:
             recording.flush(timeout_s=10.0)  # a sink that died (disk full) fails the run now, not at its end
 
     def log_latency(self, stages: Mapping[str, float]) -> None:
-        """Per-stage times (ms) of the current frame, as ``metrics/latency/<stage>``."""
+        """Per-stage times (ms) of the current frame, as ``metrics/latency/<stage>`` (sent in batches)."""
         for stage, ms in stages.items():
-            self.recording.scalar(f"metrics/latency/{stage.removesuffix('_ms')}", ms)
+            self.series.add(f"metrics/latency/{stage.removesuffix('_ms')}", ms)
 
     def _log_jpeg(self, path: str, image: np.ndarray) -> None:
         """``image`` at the recording's ``image_scale`` and JPEG quality, under ``path``."""
         self.recording.jpeg(path, image, quality=self.settings.jpeg_quality, scale=self.settings.image_scale)
 
     def _log_detections(self, result: FrameResult, scale: float) -> None:
-        def to_rerun(pixels: np.ndarray) -> np.ndarray:
-            return (np.asarray(pixels, np.float64) + 0.5) * scale
-
-        strips, colours, labels = [], [], []
+        """The detected markers' outlines (coloured by their target's state) and ids, their corners, and
+        each board's inlier and outlier corners, on the image (its pixels: distorted, at ``scale``)."""
+        colours, labels = [], []
         failed = {f.marker_id for f in result.failures}
-        for marker_id, corners in zip(result.detections.ids.tolist(), result.detections.corners):
+        for marker_id in result.detections.ids.tolist():
             target = result.targets.get(TargetId.marker(marker_id))
             colour = (
                 _STATE_COLOURS[target.state] if target else (_FAILED_COLOUR if marker_id in failed else (160, 160, 160))
             )
-            strips.append(to_rerun(np.vstack([corners, corners[:1]])))
             colours.append(colour)
             labels.append(str(marker_id))
-        self.recording.log("camera/image/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=[1.0]))
+        quads = np.asarray(result.detections.corners, np.float64).reshape(-1, 4, 2)
+        strips = (np.concatenate([quads, quads[:, :1]], axis=1) + 0.5) * scale  # (N, 5, 2), one array
+        self.recording.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=[1.0]))
         corners = np.asarray(result.detections.corners.reshape(-1, 2), np.float64)
-        self.recording.image_points("camera/image/corners", corners, radius=1.5, colours=[(255, 0, 255)], scale=scale)
+        self.recording.image_points(f"{IMAGE}/corners", corners, radius=1.5, colours=[(255, 0, 255)], scale=scale)
         for name, target in result.targets.items():
             if not name.is_board:
                 continue
-            path = self._own(name, f"camera/image/boards/{entity_name(name)}")
+            path = self._own(name, f"{IMAGE}/boards/{entity_name(name)}")
             inliers = (
                 target.corners_in_image.reshape(-1, 2) if target.corners_in_image is not None else np.zeros((0, 2))
             )
@@ -283,8 +330,8 @@ class RerunRecorder:
         self._log_shape(self.anchor, result.targets[self.anchor], is_anchor=True)
 
     def _log_metrics(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
-        """Each target's metrics, state changes and filter events."""
-        scalar = self.recording.scalar
+        """Each target's metrics (sent in batches), state changes and filter events."""
+        scalar = self.series.add
         for name, target in result.targets.items():
             part = entity_name(name)
             if math.isfinite(target.reproj_px):
@@ -307,6 +354,8 @@ class RerunRecorder:
                 scalar(self._own(name, f"metrics/rotation_error_deg/{part}"), error)
 
     def _log_world(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
+        """The camera (placed by the anchor; held where it was last seen while the anchor is out of view),
+        every other target placed from it, and the filter's hypotheses."""
         self._choose_anchor(result)
         self._log_metrics(result, truth)
         if self.anchor is None:
@@ -320,19 +369,11 @@ class RerunRecorder:
                 colours=[(255, 255, 255)],
                 labels=["true camera"],
             )
-        if anchor is None:
+        if anchor is not None:
+            self._log_camera(anchor.pose.inverse(), anchor.length_m)
+        world_from_camera = self._world_from_camera
+        if world_from_camera is None:
             return
-        world_from_camera = anchor.pose.inverse()  # its translation is the camera centre C = -R^T t
-        self.recording.log(
-            "world/camera", rr.Transform3D(translation=world_from_camera.tvec, mat3x3=world_from_camera.rotation)
-        )
-        self._trajectory.append(world_from_camera.tvec.copy())
-        del self._trajectory[:-_TRAJECTORY_POINTS]
-        if len(self._trajectory) >= 2:
-            self.recording.log(
-                "world/camera_trajectory",
-                rr.LineStrips3D([np.asarray(self._trajectory)], colors=[(255, 210, 60)], radii=[anchor.length_m / 80]),
-            )
         for name, target in result.targets.items():
             if name == self.anchor:
                 continue
@@ -345,27 +386,88 @@ class RerunRecorder:
             )
         self._log_hypotheses(result, world_from_camera)
 
+    def _log_camera(self, world_from_camera: Pose, length_m: float) -> None:
+        """``world/camera``'s pose (its translation is the camera centre C = -R^T t) and its trajectory."""
+        self._world_from_camera = world_from_camera
+        self.recording.log(
+            "world/camera", rr.Transform3D(translation=world_from_camera.tvec, mat3x3=world_from_camera.rotation)
+        )
+        self._trajectory.append(world_from_camera.tvec.copy())
+        del self._trajectory[:-_TRAJECTORY_POINTS]
+        if len(self._trajectory) >= 2:
+            self.recording.log(
+                "world/camera_trajectory",
+                rr.LineStrips3D([np.asarray(self._trajectory)], colors=[(255, 210, 60)], radii=[length_m / 80]),
+            )
+
     def _log_hypotheses(self, result: FrameResult, world_from_camera: Pose) -> None:
-        """Both IPPE branches of every marker, faint, so the flip the filter resolves can be seen."""
-        for name, target in result.targets.items():
+        """Both IPPE branches of every target, faint, so the flip the filter resolves can be seen: all
+        targets' in one ``LineStrips3D`` (per branch its marker squares and its normal), logged whole each
+        frame, so a branch or target that is gone is gone from it."""
+        strips: list[np.ndarray] = []
+        colours: list[np.ndarray] = []
+        radii: list[np.ndarray] = []
+        for target in result.targets.values():
             if not target.branch_poses:
                 continue
-            root = self._own(name, f"world/hypotheses/{entity_name(name)}")
+            normal = np.array([[0.0, 0.0, 0.0], *[[0.0, 0.0, target.length_m]] * 4])  # as long as a square
+            shape = np.concatenate([closed_squares(target), normal[None]])  # (S + 1, 5, 3)
             for branch, pose in enumerate(target.branch_poses):
-                path = f"{root}/branch_{branch}"
                 if pose is None:
-                    self.recording.clear(path)
                     continue
-                world_from_branch = world_from_camera.compose(pose)
-                squares = [world_from_branch.apply(square) for square in closed_squares(target)]
-                normal = world_from_branch.apply(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, target.length_m]]))
-                colour = (90, 200, 255, 90) if branch == 0 else (255, 140, 60, 90)
-                strips = rr.LineStrips3D([*squares, normal], colors=[colour], radii=[target.length_m / 120])
-                self.recording.log(path, strips)
+                rotation = world_from_camera.rotation @ pose.rotation
+                translation = world_from_camera.rotation @ pose.tvec + world_from_camera.tvec
+                strips.append(shape @ rotation.T + translation)
+                colours.append(np.tile(_BRANCH_COLOURS[min(branch, 1)], (len(shape), 1)))
+                radii.append(np.full(len(shape), target.length_m / 120, np.float32))
+        if strips:
+            lines = rr.LineStrips3D(np.concatenate(strips), colors=np.concatenate(colours), radii=np.concatenate(radii))
+            self.recording.log("world/hypotheses", lines)
+            self._hypotheses_drawn = True
+        elif self._hypotheses_drawn:
+            self.recording.clear("world/hypotheses")
+            self._hypotheses_drawn = False
 
     def close(self, timeout_s: float = 10.0) -> None:
-        """Flush everything to the sinks and close the file (the .rrd is complete afterwards).
+        """Send the metrics kept, flush everything to the sinks and close the file (the .rrd is complete
+        afterwards).
 
         The flush is bounded: a viewer that went away must not hang the end of a run.
         """
-        self.recording.close(timeout_s=timeout_s)
+        try:
+            self.series.flush()
+        finally:
+            self.recording.close(timeout_s=timeout_s)
+
+
+def image_from_camera(camera: CameraModel, scale: float = 1.0) -> np.ndarray:
+    """The viewer's pinhole matrix for an image of ``camera`` logged at ``scale``: ``camera_matrix`` with the
+    principal point half a pixel further (OpenCV puts pixel centres at integers, rerun pixel corners) and
+    scaled, so that it maps a point in the camera frame to where it is on the logged image (lens
+    distortion aside: the viewer has none)."""
+    to_rerun = np.diag([scale, scale, 1.0]) @ np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    return to_rerun @ np.asarray(camera.camera_matrix, np.float64)
+
+
+def _distortion_note(camera: CameraModel) -> str | None:
+    """What the viewer's projected overlay misses (its pinhole has no distortion): how far a point on the
+    image's border is from where an undistorted camera sees it, at most; None for a camera without
+    distortion."""
+    if not camera.has_distortion:
+        return None
+    width, height = camera.width, camera.height
+    edge = np.linspace(0.0, 1.0, 33)
+    border = np.concatenate(
+        [np.c_[edge * (width - 1), np.zeros_like(edge)], np.c_[edge * (width - 1), np.full_like(edge, height - 1)]]
+        + [np.c_[np.zeros_like(edge), edge * (height - 1)], np.c_[np.full_like(edge, width - 1), edge * (height - 1)]]
+    )
+    matrix = np.asarray(camera.camera_matrix, np.float64)
+    ideal = cv2.undistortPoints(border.reshape(-1, 1, 2), matrix, camera.dist_or_none, P=matrix).reshape(-1, 2)
+    offsets = np.linalg.norm(ideal - border, axis=1)
+    offsets = offsets[np.isfinite(offsets)]
+    worst = float(offsets.max()) if offsets.size else float("nan")
+    return (
+        f"camera view: the viewer projects the 3D overlay without lens distortion (its pinhole has none): up to "
+        f"{worst:.1f} px off at the image's edges, exact at its centre; the image and the 2D detections are "
+        "the camera's own (distorted) pixels"
+    )

@@ -193,6 +193,18 @@ class Recording:
         if value is not None and math.isfinite(value):
             self.stream.log(entity, rr.Scalars(float(value)))
 
+    @staticmethod
+    def time_columns(*, frames: Sequence[int], seconds: Sequence[float]) -> list[rr.TimeColumn]:
+        """The run recorder's timelines at several frames, for :meth:`scalar_columns`: ``frames`` on the
+        ``frame`` sequence, ``seconds`` on ``time``."""
+        return [rr.TimeColumn("frame", sequence=frames), rr.TimeColumn("time", duration=seconds)]
+
+    def scalar_columns(self, entity: str, values: Sequence[float], times: Any) -> None:
+        """Points of the time series ``entity`` at several times in one call: ``values[i]`` at the i-th row
+        of ``times`` (:meth:`time_columns`)."""
+        if len(values):
+            self.stream.send_columns(entity, indexes=times, columns=rr.Scalars.columns(scalars=np.asarray(values)))
+
     def text(self, entity: str, text: str, *, warn: bool = False, static: bool = False) -> None:
         """A line of a text log, level INFO or WARN."""
         level = rr.TextLogLevel.WARN if warn else rr.TextLogLevel.INFO

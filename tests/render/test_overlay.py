@@ -12,17 +12,21 @@ import numpy as np
 import pytest
 
 from ar_anchor.camera import CameraModel
-from ar_anchor.config import OverlayConfig, TrackerConfig, demo_config, load_config
+from ar_anchor.config import OverlayConfig, RecordingConfig, TrackerConfig, demo_config, load_config
 from ar_anchor.errors import ConfigError
 from ar_anchor.geometry import Pose, look_at
 from ar_anchor.render.models import cube_model, load_mesh, pin_model
 from ar_anchor.render.overlay import OverlayRenderer, target_from_anchor
-from ar_anchor.sources.base import Frame
+from ar_anchor.run.options import RunOptions
+from ar_anchor.run.run_outputs import RunOutputs
+from ar_anchor.sources.base import Frame, SourceInfo
 from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
+from ar_anchor.targets import TargetId, TrackState
 from ar_anchor.track.corners import refine_corners_by_edges
 from ar_anchor.track.detection import MarkerDetections
 from ar_anchor.track.tracker import FrameResult, TargetResult, Tracker
+from ar_anchor.viz.sinks import Recording
 
 REPO = Path(__file__).resolve().parents[2]
 DARK = (30, 30, 30)
@@ -329,22 +333,80 @@ def test_an_unsupported_video_extension_is_a_usage_error_before_any_output(tmp_p
 
 
 @pytest.mark.slow
-def test_recording_holds_overlay_image_meshes_and_camera_trajectory(tmp_path):
+def test_recording_holds_the_overlay_meshes_under_the_projected_world_and_no_overlay_image(tmp_path):
     rerun = Path(sys.executable).with_name("rerun")
     if not rerun.exists():
         pytest.skip(f"{rerun} not found")
     result = run_cli(["-q", "demo", "--frames", "8", "--out", "run"], tmp_path)
     assert result.returncode == 0, result.stderr
+    recording = tmp_path / "run" / "recording.rrd"
     printed = subprocess.run(
-        [str(rerun), "rrd", "print", str(tmp_path / "run" / "recording.rrd")],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
+        [str(rerun), "rrd", "print", str(recording)], capture_output=True, text=True, timeout=120, check=True
     ).stdout
-    for entity in ("camera/overlay", "world/camera_trajectory", "world/targets/marker_0/overlay/0"):
+    # the image under the camera's pinhole, the meshes in the world the camera view projects onto it
+    for entity in ("/world/camera/image ", "/world/camera_trajectory ", "/world/targets/marker_0/overlay/0 "):
         assert entity in printed, entity
-    assert "Mesh3D" in printed
+    assert "Mesh3D" in printed and "Pinhole" in printed
+    assert "/camera/overlay" not in printed  # no rasterised overlay without [recording] overlay_images
+    verify = subprocess.run([str(rerun), "rrd", "verify", str(recording)], capture_output=True, text=True, timeout=120)
+    assert verify.returncode == 0, verify.stdout + verify.stderr
+
+
+@pytest.mark.parametrize(
+    ("video_out", "overlay_images", "overlays", "drawn", "meshes", "overlay_image"),
+    [
+        (False, False, True, 0, True, False),  # the default: the viewer draws the overlay from the meshes
+        (False, True, True, 3, True, True),  # [recording] overlay_images
+        (True, False, True, 3, True, False),  # --video-out
+        (True, True, False, 3, False, False),  # --no-overlay --video-out: the video's overlay only
+    ],
+)
+def test_the_overlay_is_rasterised_only_for_video_out_or_overlay_images(
+    tmp_path, camera, monkeypatch, video_out, overlay_images, overlays, drawn, meshes, overlay_image
+):
+    # given a run's outputs with a renderer whose annotate() is watched, and the entities the recording gets
+    renderer = OverlayRenderer(demo_config(), camera)
+    annotated: list[int] = []
+    annotate = renderer.annotate
+
+    def spy_annotate(image, result):
+        annotated.append(result.index)
+        return annotate(image, result)
+
+    monkeypatch.setattr(renderer, "annotate", spy_annotate)
+    logged: set[str] = set()
+    log, jpeg = Recording.log, Recording.jpeg
+
+    def spy_log(self, entity, data, *, static=False):
+        logged.add(entity)
+        log(self, entity, data, static=static)
+
+    def spy_jpeg(self, entity, image, **kwargs):
+        logged.add(entity)
+        jpeg(self, entity, image, **kwargs)
+
+    monkeypatch.setattr(Recording, "log", spy_log)
+    monkeypatch.setattr(Recording, "jpeg", spy_jpeg)
+    options = RunOptions(video_out=tmp_path / "annotated.mp4" if video_out else None, overlays=overlays)
+    (tmp_path / "out").mkdir()
+    outputs = RunOutputs(tmp_path / "out", options)
+    outputs.open(camera, RecordingConfig(overlay_images=overlay_images), SourceInfo(), renderer)
+    # when three tracked frames are written
+    image = np.full((camera.height, camera.width, 3), 90, np.uint8)
+    name = TargetId.parse("marker:1")
+    targets = {name: TargetResult(name, TrackState.TRACKED, facing(0.5), facing(0.5), 0.1, 3.0, 0.05)}
+    for index in range(3):
+        result = FrameResult(index, index * 33_000_000, MarkerDetections.empty(), targets, camera=camera)
+        outputs.write(Frame(image, index, index * 33_000_000), result, None, {})
+    outputs.close()
+    summary = outputs.write_summary("completed", 1.0, {})
+    # then the renderer ran only where its image is used, and the recording has what the options ask for
+    assert annotated == list(range(drawn))
+    assert ("world/overlay/0" in logged) is meshes
+    assert ("camera/overlay" in logged) is overlay_image
+    assert "world/camera/image" in logged
+    if not drawn:
+        assert summary["latency_ms"]["render_ms"]["median"] < 1.0
 
 
 def test_axes_are_drawn_in_their_colours_along_the_target_axes(camera):

@@ -5,22 +5,27 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
+import rerun as rr
+import rerun.blueprint as rrb
 
 from ar_anchor.config import RecordingConfig
 from ar_anchor.errors import OutputError
 from ar_anchor.geometry import Pose
+from ar_anchor.render.models import cube_model
 from ar_anchor.sources.base import Frame
 from ar_anchor.targets import TargetId, TrackState
 from ar_anchor.track.detection import MarkerDetections
 from ar_anchor.track.tracker import FrameResult, TargetResult
 from ar_anchor.viz import viewer
 from ar_anchor.viz.blueprints import calibrate_blueprint, run_blueprint, study_blueprint
-from ar_anchor.viz.recorder import RerunRecorder
+from ar_anchor.viz.recorder import IMAGE, OVERLAY_IMAGE, RerunRecorder, image_from_camera
 from ar_anchor.viz.sinks import Recording
+from tests.helpers import distorted_camera
 
 RERUN = Path(sys.executable).with_name("rerun")
 
@@ -146,23 +151,26 @@ def _result(index: int, names: list[str], camera, *, board: bool = False) -> Fra
 
 
 class _Spy:
-    """Records the entities the recorder clears, per frame, and where target shapes are logged."""
+    """Records the entities the recorder clears, per frame, where target shapes are logged, and what else
+    it logs (entity -> [(frame, data)])."""
 
     def __init__(self, recorder: RerunRecorder) -> None:
         self.frame = -1
         self.cleared: dict[int, list[str]] = {}
+        self.cleared_flat: dict[int, list[str]] = {}
         self.shapes: dict[int, list[str]] = {}
+        self.logged: dict[str, list[tuple[int, object]]] = {}
         recording = recorder.recording
         clear, log = recording.clear, recording.log
 
         def spy_clear(entity: str, *, recursive: bool = False) -> None:
-            if recursive:  # the branch a filter does not hold this frame is cleared flat: not a gone target
-                self.cleared.setdefault(self.frame, []).append(entity)
+            (self.cleared if recursive else self.cleared_flat).setdefault(self.frame, []).append(entity)
             clear(entity, recursive=recursive)
 
         def spy_log(entity: str, data, *, static: bool = False) -> None:
             if entity.endswith("/outline"):
                 self.shapes.setdefault(self.frame, []).append(entity)
+            self.logged.setdefault(entity, []).append((self.frame, data))
             log(entity, data, static=static)
 
         recording.clear, recording.log = spy_clear, spy_log
@@ -182,7 +190,6 @@ def test_a_gone_target_is_cleared_once_and_drawn_again_when_it_comes_back(tmp_pa
         "metrics/ambiguity/marker_2",
         "metrics/flip_evidence_px/marker_2",
         "metrics/reproj_px/marker_2",
-        "world/hypotheses/marker_2",
         "world/targets/marker_2",
     ]
     marker_1 = [entity.replace("marker_2", "marker_1") for entity in marker_2 if "world/targets" not in entity]
@@ -191,6 +198,11 @@ def test_a_gone_target_is_cleared_once_and_drawn_again_when_it_comes_back(tmp_pa
     assert spy.cleared == {1: marker_2, 4: marker_2, 5: marker_1}
     # its shape is logged again when it comes back; the anchor's once
     assert spy.shapes == {0: ["world/outline", "world/targets/marker_2/outline"], 3: ["world/targets/marker_2/outline"]}
+    # every target's hypotheses are one entity, logged whole each frame: a gone target's are not in it (one
+    # branch each: its square and its normal), and with no target left it is cleared
+    strips = {frame: len(data.strips.as_arrow_array()) for frame, data in spy.logged["world/hypotheses"]}
+    assert strips == {0: 4, 1: 2, 2: 2, 3: 4, 4: 2}
+    assert spy.cleared_flat == {5: ["world/hypotheses"]}
     # and the file read back holds the clears
     chunks = rrd_chunks(path)
     for entity in marker_2 + marker_1:
@@ -206,7 +218,7 @@ def test_board_points_are_cleared_with_the_board(tmp_path, camera):
         spy.frame = index
         recorder.log_frame(Frame(image, index, index * 33_000_000), _result(index, names, camera))
     recorder.close()
-    assert "camera/image/boards/board_desk" in spy.cleared[1]
+    assert "world/camera/image/boards/board_desk" in spy.cleared[1]
     assert "metrics/inliers/board_desk" in spy.cleared[1]
     assert "world/targets/board_desk" not in spy.cleared[1]  # the anchor: its shape is the world frame
 
@@ -215,6 +227,180 @@ def test_overlay_models_can_be_given_to_the_constructor(tmp_path, camera):
     recorder = RerunRecorder(tmp_path / "r.rrd", camera=camera, overlay_models=lambda target: [])
     assert recorder.overlay_models is not None
     recorder.close()
+
+
+def _views(container) -> list:
+    """The blueprint's views, depth first."""
+    if isinstance(container, rrb.View):
+        return [container]
+    return [view for child in container.contents for view in _views(child)]
+
+
+def _shows(view, entity: str) -> bool:
+    """Does the view's entity filter take ``entity`` (rerun's rules: the last matching rule wins, ``/**``
+    matches the path and everything under it)?"""
+    rules = [view.contents] if isinstance(view.contents, str) else list(view.contents)
+    taken = False
+    for rule in rules:
+        sign, _, pattern = rule.partition(" ") if rule[:2] in ("+ ", "- ") else ("+", " ", rule)
+        pattern = "/" + pattern.replace("$origin", str(view.origin)).strip("/")
+        path = "/" + entity.strip("/")
+        if pattern.endswith("/**"):
+            matched = path == pattern[:-3] or path.startswith(pattern[:-2])
+        else:
+            matched = path == pattern
+        if matched:
+            taken = sign == "+"
+    return taken
+
+
+def _run_frames(recorder: RerunRecorder, camera, seen: list[list[str]], spy: _Spy | None = None, **kwargs) -> None:
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    for index, names in enumerate(seen):
+        if spy is not None:
+            spy.frame = index
+        recorder.log_frame(Frame(image, index, index * 33_000_000), _result(index, names, camera), **kwargs)
+
+
+def test_the_camera_view_projects_every_targets_overlay_meshes_onto_the_image(tmp_path, camera):
+    # given a recorder with an overlay model per target, and two targets seen (marker:1 anchors the world)
+    cube = SimpleNamespace(model=cube_model(0.05))
+    path = tmp_path / "r.rrd"
+    recorder = RerunRecorder(path, camera=camera, overlay_models=lambda target: [cube])
+    spy = _Spy(recorder)
+    _run_frames(recorder, camera, [["marker:1", "marker:2"], ["marker:1", "marker:2"]], spy)
+    recorder.close()
+    # then the meshes, the image and its detections are where the "AR overlay" view draws them: its origin
+    # is the camera's pinhole, the image its child, and the 3D world (the meshes) projected through it
+    (view,) = [view for view in _views(run_blueprint().root_container) if view.name == "AR overlay"]
+    assert isinstance(view, rrb.Spatial2DView) and view.origin == "world/camera"
+    meshes = [entity for entity, logged in spy.logged.items() if isinstance(logged[0][1], rr.Mesh3D)]
+    assert sorted(meshes) == ["world/overlay/0", "world/targets/marker_2/overlay/0"]
+    for entity in [*meshes, "world/outline", "world/targets/marker_2/outline", IMAGE, f"{IMAGE}/markers"]:
+        assert _shows(view, entity), entity
+    assert IMAGE.startswith(f"{view.origin}/")
+    for entity in ("world/camera_trajectory", "world/hypotheses", "world/truth_camera", OVERLAY_IMAGE):
+        assert not _shows(view, entity), entity
+    # the plain "Camera" view is the image and its detections alone
+    (plain,) = [view for view in _views(run_blueprint().root_container) if view.name == "Camera"]
+    assert _shows(plain, IMAGE) and not _shows(plain, "world/overlay/0")
+    chunks = rrd_chunks(path)
+    assert any(chunk.startswith("/world/camera - data columns: [Pinhole:") for chunk in chunks)
+    assert f"/{IMAGE} - data columns: [EncodedImage:blob EncodedImage:media_type]" in chunks
+    verify(path)
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_the_pinhole_puts_a_point_where_it_is_on_the_logged_image(camera, scale):
+    # given points in the camera frame, and their pixels as OpenCV sees them (integers at pixel centres)
+    points = np.array([[0.0, 0.0, 1.0], [0.1, -0.05, 0.6], [-0.2, 0.1, 0.9]])
+    opencv = camera.project(points)
+    # then the viewer's pinhole maps them where the 2D detections are drawn on the image logged at scale
+    projected = points @ image_from_camera(camera, scale).T
+    np.testing.assert_allclose(projected[:, :2] / projected[:, 2:], (opencv + 0.5) * scale, atol=1e-9)
+
+
+def test_the_overlay_image_is_logged_only_with_overlay_images(tmp_path, camera):
+    overlay = np.zeros((camera.height, camera.width, 3), np.uint8)
+    for overlay_images, expected in ((False, []), (True, [0, 1])):
+        recorder = RerunRecorder(
+            tmp_path / f"{overlay_images}.rrd", camera=camera, settings=RecordingConfig(overlay_images=overlay_images)
+        )
+        logged = []
+        jpeg = recorder.recording.jpeg
+
+        def spy_jpeg(entity, image, *, _jpeg=jpeg, _logged=logged, **kwargs):
+            if entity == OVERLAY_IMAGE:
+                _logged.append(len(_logged))
+            _jpeg(entity, image, **kwargs)
+
+        recorder.recording.jpeg = spy_jpeg
+        frame = Frame(overlay, 0, 0)
+        assert recorder.wants_overlay_image(frame) is overlay_images
+        _run_frames(recorder, camera, [["marker:1"], ["marker:1"]], overlay=overlay)
+        recorder.close()
+        assert logged == expected
+    # and the viewer gets a tab for it only then
+    names = {view.name for view in _views(run_blueprint(overlay_image=True).root_container)}
+    assert "Overlay image" in names
+    assert "Overlay image" not in {view.name for view in _views(run_blueprint().root_container)}
+
+
+def test_metrics_are_sent_in_batches_that_hold_every_frames_value(tmp_path, camera):
+    # given a recorder that sends the metrics every 3 frames
+    path = tmp_path / "r.rrd"
+    recorder = RerunRecorder(path, camera=camera, settings=RecordingConfig(image_every=0, metrics_every=3))
+    sent: dict[str, list[list[int]]] = {}
+    columns = recorder.recording.scalar_columns
+
+    def spy_columns(entity, values, times):
+        sent.setdefault(entity, []).append(list(values))
+        columns(entity, values, times)
+
+    recorder.recording.scalar_columns = spy_columns
+    # when 7 frames are logged, each with its stage times
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    for index in range(7):
+        recorder.log_frame(Frame(image, index, index * 33_000_000), _result(index, ["marker:1"], camera))
+        recorder.log_latency({"log_ms": float(index)})
+    assert sent["metrics/latency/log"] == [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]]  # the 7th waits for its batch
+    recorder.close()
+    # then each series went in one call per 3 frames, the last frames' when the recording closed
+    assert sent["metrics/latency/log"] == [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0], [6.0]]
+    assert [len(values) for values in sent["metrics/reproj_px/marker_1"]] == [3, 3, 1]
+    printed = subprocess.run(
+        [str(RERUN), "rrd", "print", str(path)], capture_output=True, text=True, timeout=120, check=True
+    ).stdout
+    chunk = "/metrics/latency/log - data columns: [Scalars:scalars]"
+    rows = [line for line in printed.splitlines() if line.endswith(chunk)]
+    assert sum(int(line.split(" with ")[1].split(" rows")[0]) for line in rows) == 7  # every frame's value
+    verify(path)
+
+
+def test_a_new_part_holds_the_metrics_of_its_own_frames(tmp_path, camera):
+    # given a recording that goes on in a new file every frame, and metrics sent every 10 frames
+    settings = RecordingConfig(image_every=0, metrics_every=10, part_minutes=1e-9)
+    recorder = RerunRecorder(tmp_path / "recording.rrd", camera=camera, settings=settings)
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    for index in range(2):
+        recorder.log_frame(Frame(image, index, index * 33_000_000), _result(index, ["marker:1"], camera))
+        recorder.log_latency({"log_ms": 1.0})
+    recorder.close()
+    # then frame 0's metrics are in its file (sent before it closed), frame 1's in the next (the first file
+    # ended before frame 0, when the recording was opened)
+    first, second = recorder.parts[-2:]
+    for part in (first, second):
+        assert "/metrics/latency/log - data columns: [Scalars:scalars]" in rrd_chunks(part), part.name
+        verify(part)
+
+
+def test_targets_stay_placed_from_the_last_camera_while_the_anchor_is_out_of_view(tmp_path, camera):
+    recorder = RerunRecorder(tmp_path / "r.rrd", camera=camera, settings=RecordingConfig(image_every=0))
+    spy = _Spy(recorder)
+    _run_frames(recorder, camera, [["marker:1", "marker:2"], ["marker:2"]], spy)
+    recorder.close()
+    # the camera is not moved on frame 1 (the anchor, marker:1, is not seen), marker:2 is placed from it
+    assert [frame for frame, _ in spy.logged["world/camera"] if frame >= 0] == [0]
+    assert [frame for frame, _ in spy.logged["world/targets/marker_2"]] == [0, 1]
+
+
+def test_the_distortion_the_viewer_leaves_out_is_said_once_in_the_events(tmp_path, camera):
+    for model, expected in ((camera, 0), (distorted_camera(), 1)):
+        recorder = RerunRecorder(tmp_path / "r.rrd", camera=model, settings=RecordingConfig(image_every=0))
+        texts = []
+        text = recorder.recording.text
+
+        def spy_text(entity, line, *, _text=text, _texts=texts, **kwargs):
+            _texts.append(line)
+            _text(entity, line, **kwargs)
+
+        recorder.recording.text = spy_text
+        _run_frames(recorder, model, [["marker:1"], ["marker:1"]])
+        recorder.close()
+        notes = [line for line in texts if "without lens distortion" in line]
+        assert len(notes) == expected, texts
+    offset = float(notes[0].split("up to ")[1].split(" px")[0])
+    assert 5.0 < offset < 200.0  # k1 = -0.32 at 640x480: tens of pixels at the corners
 
 
 # ---------------------------------------------------------------------------- the viewer
