@@ -4,6 +4,7 @@
   primitives the tools use (calibrate and study log through it).
 - :mod:`.recorder`: :class:`~.recorder.RerunRecorder`, the tracker run's recording (its entity tree is there).
 - :mod:`.blueprints`: the viewer layouts of a run, a calibration and a study.
+- :mod:`.series`: time series kept per frame and sent in batches (the run's ``metrics/*``).
 - :mod:`.parts`: shapes (a target's marker squares, an overlay model as a mesh) and entity names.
 - :mod:`.viewer`: starting a local rerun viewer, or reusing the one already listening.
 """

@@ -13,10 +13,12 @@ import pytest
 import rerun as rr
 import rerun.blueprint as rrb
 
+from ar_anchor.camera import CameraModel
 from ar_anchor.config import RecordingConfig
 from ar_anchor.errors import OutputError
 from ar_anchor.geometry import Pose
 from ar_anchor.render.models import cube_model
+from ar_anchor.render.video import AnnotatedVideoWriter
 from ar_anchor.sources.base import Frame
 from ar_anchor.targets import TargetId, TrackState
 from ar_anchor.track.detection import MarkerDetections
@@ -372,6 +374,33 @@ def test_a_new_part_holds_the_metrics_of_its_own_frames(tmp_path, camera):
     for part in (first, second):
         assert "/metrics/latency/log - data columns: [Scalars:scalars]" in rrd_chunks(part), part.name
         verify(part)
+
+
+def test_a_referenced_video_is_the_camera_views_image_at_full_resolution(tmp_path):
+    # given an H.264 MP4 (rerun decodes it) and a recording that downscales the images it encodes itself
+    video = tmp_path / "clip.mp4"
+    writer = AnnotatedVideoWriter(video, fps=30)
+    for index in range(4):
+        writer.write(np.full((48, 64, 3), 40 * index, np.uint8))
+    writer.close()
+    camera = CameraModel.from_fov(64, 48, 60.0)
+    path = tmp_path / "r.rrd"
+    recorder = RerunRecorder(path, camera=camera, settings=RecordingConfig(image_scale=0.5))
+    spy = _Spy(recorder)
+    # when it references the video
+    assert recorder.use_video(video, expected_frames=4)
+    _run_frames(recorder, camera, [["marker:1"]] * 4, spy)
+    recorder.close()
+    # then the video and its frames are the image under the camera's pinhole, and the pinhole is the video's
+    # (full resolution), not that of the downscaled JPEGs
+    kinds = [type(data).__name__ for _, data in spy.logged[IMAGE]]
+    assert kinds == ["AssetVideo"] + ["VideoFrameReference"] * 4
+    pinhole = [data for _, data in spy.logged["world/camera"] if isinstance(data, rr.Pinhole)][-1]
+    resolution = pinhole.resolution.as_arrow_array().to_pylist()[0]
+    assert resolution == [64.0, 48.0]
+    chunks = rrd_chunks(path)
+    assert any(chunk.startswith(f"/{IMAGE} - data columns: [VideoFrameReference:") for chunk in chunks), chunks
+    verify(path)
 
 
 def test_targets_stay_placed_from_the_last_camera_while_the_anchor_is_out_of_view(tmp_path, camera):
