@@ -12,7 +12,7 @@ from ..camera import CameraModel
 from ..config import CORNER_REFINEMENTS, DetectorConfig, dictionary_id
 from .corners import refine_corners_by_edges
 
-__all__ = ["Detector", "MarkerDetections", "Region", "plan_regions"]
+__all__ = ["FAST_MIN_SIDE_PX", "Detector", "MarkerDetections", "Region", "mean_side", "plan_regions"]
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +104,49 @@ def plan_regions(
     return regions
 
 
+# OpenCV's Aruco3 search (useAruco3Detection, no downscaling) keeps candidates whose sides are at least
+# minSideLengthCanonicalImg pixels (32) and thresholds the image once: on chessboard.avi (18 markers of 33-60 px)
+# it finds exactly the markers the three-window search finds in every frame, in a sixth of the time; it finds
+# no marker of 32 px and every one of 40 px and more (synthetic 4x4 markers, blurred and noisy, 640-1920 px wide).
+# It is used only while every marker known is at least FAST_MIN_SIDE_PX (a margin for a marker seen smaller
+# in the next frame); see Tracker._detect.
+_FAST_CANONICAL_SIDE_PX = 32
+FAST_MIN_SIDE_PX = 40.0
+
+
+def _derived_parameters(params: cv2.aruco.DetectorParameters, **changes: object) -> cv2.aruco.DetectorParameters:
+    """OpenCV's defaults with ``params``' refinement, perimeter limit and bit reading, then ``changes``."""
+    derived = cv2.aruco.DetectorParameters()
+    for name in (
+        "cornerRefinementMethod",
+        "relativeCornerRefinmentWinSize",
+        "minMarkerPerimeterRate",
+        "perspectiveRemoveIgnoredMarginPerCell",
+        "perspectiveRemovePixelPerCell",
+    ):
+        if hasattr(params, name):
+            setattr(derived, name, getattr(params, name))
+    for name, value in changes.items():
+        setattr(derived, name, value)
+    return derived
+
+
+def _fast_parameters(params: cv2.aruco.DetectorParameters) -> cv2.aruco.DetectorParameters:
+    """The Aruco3 variant of ``params``, without downscaling (sides are measured in the image's pixels)."""
+    return _derived_parameters(
+        params,
+        useAruco3Detection=True,
+        minSideLengthCanonicalImg=_FAST_CANONICAL_SIDE_PX,
+        minMarkerLengthRatioOriginalImg=0.0,
+    )
+
+
+def mean_side(corners: np.ndarray) -> float:
+    """The mean side length, in pixels, of a marker's corners (4, 2): a quarter of its perimeter."""
+    corners = np.asarray(corners, np.float64).reshape(4, 2)
+    return float(np.sqrt(((np.roll(corners, -1, axis=0) - corners) ** 2).sum(axis=1)).mean())
+
+
 class Detector:
     """Find markers of one dictionary, with sub-pixel corners fitted to the markers' edges by default
     (:mod:`ar_anchor.track.corners`; ``corner_refinement`` selects OpenCV's methods instead)."""
@@ -128,17 +171,20 @@ class Detector:
         params.perspectiveRemovePixelPerCell = 6
         self.parameters = params
         self._detector = cv2.aruco.ArucoDetector(self.dictionary, params)
-        self._region_detectors: dict[int, cv2.aruco.ArucoDetector] = {}
+        self._fast_detector = cv2.aruco.ArucoDetector(self.dictionary, _fast_parameters(params))
+        self._region_detectors: dict[tuple[int, float], cv2.aruco.ArucoDetector] = {}
         self._warned_duplicates: set[int] = set()
         self.rejected: tuple[np.ndarray, ...] = ()  # the last image's rejected candidates
 
-    def detect(self, image: np.ndarray, camera: CameraModel | None = None) -> MarkerDetections:
+    def detect(self, image: np.ndarray, camera: CameraModel | None = None, fast: bool = False) -> MarkerDetections:
         """Detect markers in a BGR or grey image. Markers whose id appears twice are dropped (ambiguous).
 
         ``camera`` (optional) lets the edge refinement fit the markers' sides in the undistorted image.
+        ``fast``: OpenCV's Aruco3 search (one threshold, candidates of at least :data:`FAST_MIN_SIDE_PX`),
+        several times cheaper where markers are big; it cannot find smaller markers.
         """
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        corners, ids, rejected = self._detector.detectMarkers(grey)
+        corners, ids, rejected = (self._fast_detector if fast else self._detector).detectMarkers(grey)
         self.rejected = rejected
         if ids is None or len(ids) == 0:
             return MarkerDetections.empty()
@@ -151,7 +197,7 @@ class Detector:
         return detections
 
     def detect_regions(
-        self, image: np.ndarray, regions: list[Region], camera: CameraModel | None = None
+        self, image: np.ndarray, regions: list[Region], camera: CameraModel | None = None, thorough: bool = False
     ) -> MarkerDetections:
         """Detect markers only inside ``regions`` (ROI tracking), each searched at its own scale.
 
@@ -160,18 +206,22 @@ class Detector:
         exactly (pixel centres at integers: ``full = (p + 0.5) / scale - 0.5 + origin``), and the
         edge refinement then runs on the region's full-resolution pixels, so ROI corners are as
         accurate as full-frame ones. Only the regions are converted to grey. A marker found in two
-        overlapping regions at the same place counts once.
+        overlapping regions at the same place counts once. ``thorough``: every region searched once, at
+        full scale, as the full-frame search does (three threshold windows).
         """
         found_ids: list[np.ndarray] = []
         found_corners: list[np.ndarray] = []
         rejected: list[np.ndarray] = []
         k, dist = (None, None) if camera is None else (camera.camera_matrix, camera.dist_or_none)
+        # the smallest marker perimeter a full-frame search accepts, in pixels: a crop's own fraction of its
+        # size would accept far smaller candidates (many more contours to look at, none a full-frame search keeps)
+        min_perimeter_px = self.parameters.minMarkerPerimeterRate * max(image.shape[:2])
         for region in regions:
             crop = image[region.y0 : region.y1, region.x0 : region.x1]
             if crop.shape[0] < 8 or crop.shape[1] < 8:
                 continue
             grey = crop if crop.ndim == 2 else cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY)  # only the region's pixels
-            if region.scale < 1.0:
+            if region.scale < 1.0 and not thorough:
                 size = (max(8, round(grey.shape[1] * region.scale)), max(8, round(grey.shape[0] * region.scale)))
                 # bilinear is 7x cheaper than area averaging and good enough to find a marker shrunk by up to
                 # half (its corners are refined at full resolution afterwards); below that it would alias
@@ -180,12 +230,15 @@ class Detector:
             else:
                 search = grey
             origin = np.array([region.x0, region.y0], np.float64)
-            corners, ids, candidates = self._region_detector(region.cell_px).detectMarkers(search)
-            if ids is None or not len(ids):
+            rate = min_perimeter_px * search.shape[1] / grey.shape[1] / max(search.shape[:2])
+            cell_px = 0.0 if thorough else region.cell_px  # (below 8 px: the three windows)
+            corners, ids, candidates = self._region_detector(cell_px, rate).detectMarkers(search)
+            if (ids is None or not len(ids)) and not thorough:
                 # the one threshold window, or shrinking (e.g. sides bent by a strong lens), can lose a
                 # marker: look again with the full-frame detector at full scale
                 search = grey
-                corners, ids, candidates = self._detector.detectMarkers(grey)
+                rate = min_perimeter_px / max(grey.shape[:2])
+                corners, ids, candidates = self._region_detector(0.0, rate).detectMarkers(grey)
             factors = (search.shape[1] / grey.shape[1], search.shape[0] / grey.shape[0])
 
             def to_crop(points: np.ndarray, factors: tuple[float, float] = factors) -> np.ndarray:
@@ -216,30 +269,28 @@ class Detector:
                     break
         return self._clean(ids[keep], corners[keep])
 
-    def _region_detector(self, cell_px: float) -> cv2.aruco.ArucoDetector:
+    def _region_detector(self, cell_px: float, perimeter_rate: float) -> cv2.aruco.ArucoDetector:
         """A detector for a region whose marker cells are about ``cell_px`` wide (after its scale): for
         cells of 8 px and more, the full-frame detector's parameters but one adaptive-threshold window
         (23 px, two to three cells) instead of the three sizes a full-frame search must try, since the
-        marker's size is known (a third less time); for smaller cells, the full-frame detector."""
-        if cell_px < 8.0:
-            # small cells: one window can outline a far marker a pixel or two off (the edge fit cannot
-            # move a small marker's corners that far), so the full-frame detector's three windows it is
-            return self._detector
-        window = 23
-        detector = self._region_detectors.get(window)
+        marker's size is known (a third less time); for smaller cells, the full-frame detector's three.
+        ``perimeter_rate``: the region's ``minMarkerPerimeterRate`` (the full frame's smallest perimeter
+        in pixels, as a fraction of the searched image's larger side)."""
+        # small cells: one window can outline a far marker a pixel or two off (the edge fit cannot
+        # move a small marker's corners that far), so the full-frame detector's three windows it is
+        window = 23 if cell_px >= 8.0 else 0
+        rate = float(min(max(perimeter_rate, 1e-3), 4.0))
+        rate = float(f"{rate:.2g}")  # a few detectors serve every region size
+        key = (window, rate)
+        detector = self._region_detectors.get(key)
         if detector is None:
-            params = cv2.aruco.DetectorParameters()
-            for name in (
-                "cornerRefinementMethod",
-                "relativeCornerRefinmentWinSize",
-                "minMarkerPerimeterRate",
-                "perspectiveRemoveIgnoredMarginPerCell",
-                "perspectiveRemovePixelPerCell",
-            ):
-                if hasattr(params, name):
-                    setattr(params, name, getattr(self.parameters, name))
-            params.adaptiveThreshWinSizeMin = params.adaptiveThreshWinSizeMax = window
-            detector = self._region_detectors[window] = cv2.aruco.ArucoDetector(self.dictionary, params)
+            if len(self._region_detectors) >= 64:
+                self._region_detectors.clear()
+            changes: dict[str, object] = {"minMarkerPerimeterRate": rate}
+            if window:
+                changes.update(adaptiveThreshWinSizeMin=window, adaptiveThreshWinSizeMax=window)
+            detector = cv2.aruco.ArucoDetector(self.dictionary, _derived_parameters(self.parameters, **changes))
+            self._region_detectors[key] = detector
         return detector
 
     def recover(

@@ -23,7 +23,7 @@ from ..config import TrackerConfig
 from ..geometry import Pose, marker_corners_in_marker
 from ..sources.base import Frame
 from ..targets import TargetId, TrackState
-from .detection import Detector, MarkerDetections, plan_regions
+from .detection import FAST_MIN_SIDE_PX, Detector, MarkerDetections, mean_side, plan_regions
 from .filtering import TargetTrack, TrackEvent, decisive, margin_scale
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 
@@ -115,6 +115,7 @@ class Tracker:
         self._previous: FrameResult | None = None
         self._seen: dict[int, tuple[np.ndarray, int]] = {}  # marker id -> (last corners, when)
         self._frames_since_full = 0
+        self._frames_since_thorough = 0  # frames since the last thorough full-frame search (see _search_whole_frame)
         self._last_size: tuple[int, int] | None = None
 
     def camera_for(self, size: tuple[int, int]) -> CameraModel:
@@ -171,10 +172,11 @@ class Tracker:
             if not set(self._last_corners) <= set(detections.ids.tolist()):
                 detections = None  # a marker was missed: search everywhere
         if detections is None:
-            detections = self.detector.detect(image, camera)
+            detections = self._search_whole_frame(image, camera, size)
             self._frames_since_full = 0
         else:
             self._frames_since_full += 1
+            self._frames_since_thorough += 1
         self._last_size = size
         self._before_corners = self._last_corners
         self._last_corners = {int(i): c for i, c in zip(detections.ids, detections.corners)}
@@ -182,6 +184,46 @@ class Tracker:
             if self.config.tracks_marker(marker_id):  # (a stray id of no interest is not searched for)
                 self._seen[marker_id] = (corners, timestamp_ns)
         return detections
+
+    def _search_whole_frame(self, image: np.ndarray, camera: CameraModel, size: tuple[int, int]) -> MarkerDetections:
+        """A full-frame search: the fast one (:meth:`Detector.detect` ``fast``: big markers only) while ROI
+        tracking may use it, else the thorough one, which finds markers of any size.
+
+        Fast only while every marker seen in the last ``memory_s`` was at least ``FAST_MIN_SIDE_PX`` on its
+        last sighting, on a frame of the same size, and never for ``roi_full_every`` frames in a row. A
+        marker the previous frame had that the fast search misses is looked for again, thoroughly, in its
+        region (as ROI tracking does). So no marker the previous frame had is lost, and a marker never seen
+        before (or a small one coming back) is found within ``roi_full_every`` frames.
+        """
+        settings = self.config.detector
+        fast = (
+            settings.roi
+            and size == self._last_size
+            and bool(self._seen)
+            and self._frames_since_thorough + 1 < settings.roi_full_every
+            and all(mean_side(corners) >= FAST_MIN_SIDE_PX for corners, _ in self._seen.values())
+        )
+        if not fast:
+            self._frames_since_thorough = 0
+            return self.detector.detect(image, camera)
+        self._frames_since_thorough += 1
+        detections = self.detector.detect(image, camera, fast=True)
+        found = set(detections.ids.tolist())
+        lost = {i: c for i, c in self._last_corners.items() if i not in found}
+        if not lost:
+            return detections
+        # (mostly markers really gone this frame, blurred or hidden: a region each costs little to make sure)
+        rejected = self.detector.rejected
+        moving = {i: c for i, c in self._before_corners.items() if i in lost}
+        regions = plan_regions(lost, moving, size, settings.roi_margin, cells=self.detector.cells)
+        again = self.detector.detect_regions(image, regions, camera, thorough=True)
+        self.detector.rejected = (*rejected, *self.detector.rejected)
+        new = ~np.isin(again.ids, detections.ids)
+        if not new.any():
+            return detections
+        return MarkerDetections(
+            np.concatenate([detections.ids, again.ids[new]]), np.concatenate([detections.corners, again.corners[new]])
+        )
 
     def process(self, frame: Frame) -> FrameResult:
         """Track one frame (frames of one stream, in order): detect the markers (in regions around
@@ -388,7 +430,7 @@ class Tracker:
         self._previous = self._fingerprint = None
         self._sharpness = None
         self._last_corners, self._before_corners, self._seen = {}, {}, {}
-        self._frames_since_full = 0
+        self._frames_since_full = self._frames_since_thorough = 0
         self._last_size = None
 
 

@@ -13,7 +13,7 @@ from ar_anchor.geometry import Pose, angle_between_deg
 from ar_anchor.sources.base import Frame
 from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
-from ar_anchor.track.detection import Detector, Region, plan_regions
+from ar_anchor.track.detection import Detector, MarkerDetections, Region, plan_regions
 from ar_anchor.track.tracker import Tracker
 
 
@@ -91,9 +91,9 @@ def test_roi_tracking_is_as_accurate_as_full_frame_and_searches_less():
         calls = {"full": 0}
         original = tracker.detector.detect
 
-        def counting(image, camera=None, original=original, calls=calls):
+        def counting(image, camera=None, fast=False, original=original, calls=calls):
             calls["full"] += 1
-            return original(image, camera)
+            return original(image, camera, fast)
 
         tracker.detector.detect = counting
         found = []
@@ -203,3 +203,84 @@ def test_a_newly_appearing_marker_is_found_within_the_full_frame_period(full_eve
     # then it is found by the next full-frame search: within the full-frame period
     assert found_at is not None
     assert found_at - switch < full_every, (found_at, switch)
+
+
+def _vanishing_marker_frames(length_m: float, frames: int = 14, vanish: int = 4):
+    """Two markers, static camera; marker 1 is gone from frame ``vanish`` on (remembered, so every frame
+    after that is a full-frame search)."""
+    camera = CameraModel.from_fov(1280, 720, 1000.0)
+    trajectory = Trajectory(kind="static", near_m=0.6, look_at=(0.05, 0.0, 0.0))
+    one = PlacedMarker(0, length_m, Pose(np.zeros(3), np.array([-0.06, 0.0, 0.0])))
+    two = PlacedMarker(1, length_m, Pose(np.zeros(3), np.array([0.16, 0.03, 0.0])))
+    sources = [
+        SyntheticSource(SyntheticScene(camera=camera, markers=m, trajectory=trajectory, frames=frames, noise_sigma=1.0))
+        for m in ((one, two), (one,))
+    ]
+    return camera, [
+        Frame(sources[index >= vanish].frame(index).image, index, index * 33_333_333) for index in range(frames)
+    ]
+
+
+def _counting_searches(tracker: Tracker) -> dict[str, int]:
+    calls = {"fast": 0, "thorough": 0}
+    original = tracker.detector.detect
+
+    def counting(image, camera=None, fast=False):
+        calls["fast" if fast else "thorough"] += 1
+        return original(image, camera, fast)
+
+    tracker.detector.detect = counting
+    return calls
+
+
+def test_full_frame_searches_for_big_markers_are_fast_and_find_what_a_thorough_search_finds():
+    # given 83 px markers, one of which vanishes (so every later frame searches the whole frame)
+    camera, frames = _vanishing_marker_frames(0.05)
+    found = {}
+    for roi in (False, True):
+        tracker = Tracker(tracker_config(roi, ids=(0, 1), roi_full_every=6), camera)
+        calls = _counting_searches(tracker)
+        found[roi] = [sorted(tracker.process(frame).detections.ids.tolist()) for frame in frames]
+        if roi:
+            # then the whole-frame searches are mostly fast, with a thorough one at least every roi_full_every
+            assert calls["fast"] >= 6 and 2 <= calls["thorough"] <= 4, calls
+        else:
+            assert calls == {"fast": 0, "thorough": len(frames)}  # (no ROI tracking: always thorough)
+    # and they find the same markers in every frame
+    assert found[True] == found[False]
+    assert found[True][0] == [0, 1] and found[True][-1] == [0]
+
+
+def test_small_markers_are_always_searched_thoroughly():
+    # given 33 px markers (Aruco3's one-threshold search finds none below 32-40 px)
+    camera, frames = _vanishing_marker_frames(0.02)
+    tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=6), camera)
+    calls = _counting_searches(tracker)
+    found = [sorted(tracker.process(frame).detections.ids.tolist()) for frame in frames]
+    # then no whole-frame search is the fast one, and both markers are found while there
+    assert calls["fast"] == 0 and calls["thorough"] >= len(frames) - 4, calls
+    assert found[0] == [0, 1] and found[-1] == [0]
+
+
+def test_a_marker_the_fast_search_misses_is_looked_for_in_its_region():
+    camera, frames = _vanishing_marker_frames(0.05)
+    tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=6), camera)
+    original = tracker.detector.detect
+    blind = {"on": False}
+
+    def fast_search_blind_to_marker_0(image, camera=None, fast=False):
+        found = original(image, camera, fast)
+        if fast and blind["on"]:  # the fast search loses marker 0 (as one threshold may, on a blurred frame)
+            keep = found.ids != 0
+            return MarkerDetections(found.ids[keep], found.corners[keep])
+        return found
+
+    tracker.detector.detect = fast_search_blind_to_marker_0
+    for frame in frames[:6]:
+        tracker.process(frame)
+    blind["on"] = True
+    # when the fast search misses marker 0, which the previous frame had
+    result = tracker.process(frames[6])
+    # then its region is searched thoroughly in the same frame, and it is found where it is
+    assert result.detections.ids.tolist() == [0]
+    assert "marker:0" in result.targets and result.targets["marker:0"].state.measured
