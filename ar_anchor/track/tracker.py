@@ -24,7 +24,7 @@ from ..geometry import Pose, marker_corners_in_marker
 from ..sources.base import Frame
 from ..targets import TargetId, TrackState
 from .detection import FAST_MIN_SIDE_PX, Detector, MarkerDetections, mean_side, plan_regions
-from .filtering import TargetTrack, TrackEvent, decisive, margin_scale
+from .filtering import TargetTrack, TrackEvent, decisive, margin_scale, unit_covariances_of
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
@@ -337,13 +337,14 @@ class Tracker:
         self, measured: dict[TargetId, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
     ) -> dict[TargetId, TargetResult]:
         targets: dict[TargetId, TargetResult] = {}
+        unit = unit_covariances_of(list(measured.values()), camera)  # all targets' at once
         for name in TargetId.ordered(set(measured) | set(self.tracks)):
             solved = measured.get(name)
             track = self.tracks.get(name)
             if track is None:
                 assert solved is not None
                 track = self.tracks[name] = TargetTrack(self.config.filter, solved.points_in_target)
-            update = track.update(solved, timestamp_ns, camera, blurred=blurred)
+            update = track.update(solved, timestamp_ns, camera, blurred=blurred, unit_covariances=unit)
             for event in update.events if update is not None else ():
                 log.info("%s: %s", name, event.message)
             if update is None:  # nothing to publish: a gap too long to predict through, or lost for good

@@ -46,7 +46,7 @@ target's best guess) and :mod:`.track` (:class:`TargetTrack`, which puts them to
 """
 
 from .evidence import TrackEvent, decisive, margin_scale
-from .noise import pose_covariance
+from .noise import pose_covariance, unit_covariances_of
 from .smoothing import RotationFilter, TranslationFilter, so3_exp, so3_log
 from .track import TargetTrack, TrackUpdate
 
@@ -61,4 +61,5 @@ __all__ = [
     "pose_covariance",
     "so3_exp",
     "so3_log",
+    "unit_covariances_of",
 ]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import collections
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,17 +76,21 @@ class TargetTrack:
         camera: CameraModel,
         *,
         blurred: bool = False,
+        unit_covariances: Mapping[int, tuple[Pose, np.ndarray]] | None = None,
     ) -> TrackUpdate | None:
         """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen). ``blurred``: the
         whole frame is much less sharp than usual (the camera moved fast): a measurement in it is not
         vouched for, and a target lost in it is not predicted (its motion is unknown).
+
+        ``unit_covariances``: this frame's solutions' covariances at one pixel of noise, batched over all
+        targets by the caller (:func:`~.noise.unit_covariances_of`); computed here for any pose not in it.
 
         Returns None when there is nothing to publish: no track, a gap too long to predict through
         (the track stays :attr:`alive`, keeping its flip memory, until ``memory_s``), or a reset.
         """
         timestamp_ns = self._tick(timestamp_ns)
         events: list[TrackEvent] = []
-        self.noise.new_frame()
+        self.noise.new_frame(unit_covariances)
         if measurement is None:
             return self._coast(timestamp_ns, events, blurred)
         assigned, restart_frame = self._measure(measurement, timestamp_ns, camera, events)
