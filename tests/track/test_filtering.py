@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,7 +13,13 @@ from ar_anchor.bench.stability import Scenario, evaluate, run_scenario
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import FilterConfig, demo_config
 from ar_anchor.geometry import Pose, angle_between_deg, marker_corners_in_marker, matrix_from_rvec
-from ar_anchor.track.filtering import RotationFilter, TargetTrack, TranslationFilter, pose_covariance
+from ar_anchor.track.filtering import (
+    RotationFilter,
+    TargetTrack,
+    TranslationFilter,
+    pose_covariance,
+    unit_covariances_of,
+)
 from ar_anchor.track.pose import MarkerPose, PoseHypothesis
 from tests.helpers import mirrored
 
@@ -139,6 +146,30 @@ def test_pose_covariance_grows_with_distance_and_shrinks_with_size(camera):
     big = pose_covariance(Pose.from_matrix(facing, [0, 0, 2.0]), marker_corners_in_marker(0.2), camera, 0.2)
     assert np.trace(far[0]) > 4 * np.trace(near[0]) and np.trace(far[1]) > 4 * np.trace(near[1])
     assert np.trace(big[0]) < np.trace(far[0]) / 4
+
+
+def test_batched_covariances_are_each_poses_own(camera):
+    # given the two solutions of two markers of different sizes, and a board-like target with more points
+    rng = np.random.default_rng(3)
+    measurements = []
+    for length, count in ((0.05, 1), (0.12, 1), (0.2, 4)):
+        points = np.concatenate([marker_corners_in_marker(length) + [0.3 * k, 0, 0] for k in range(count)])
+        hypotheses = tuple(
+            PoseHypothesis(Pose(rng.normal(0, 0.3, 3), [rng.normal(0, 0.1), rng.normal(0, 0.1), 1.0 + k]), 0.1 + k)
+            for k in range(2)
+        )
+        measurements.append(SimpleNamespace(points_in_target=points, hypotheses=hypotheses))  # (what is read)
+    # when their covariances are computed all at once
+    unit = unit_covariances_of(measurements, camera)
+    # then each is the pose's own (at one pixel of noise), found by the pose object itself
+    assert len(unit) == 6
+    for measurement in measurements:
+        for hypothesis in measurement.hypotheses:
+            pose, covariance = unit[id(hypothesis.pose)]
+            assert pose is hypothesis.pose
+            own = pose_covariance(pose, measurement.points_in_target, camera, 0.3)
+            np.testing.assert_allclose(0.09 * covariance[:3, :3], own[0], rtol=1e-9)
+            np.testing.assert_allclose(0.09 * covariance[3:, 3:], own[1], rtol=1e-9)
 
 
 # ---------------------------------------------------------------------------- the track, step by step
