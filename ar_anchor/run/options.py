@@ -24,7 +24,7 @@ class RunOptions:
     record_raw: bool = False  # also write raw.mkv (lossless) + timestamps
     record_fps: float = 30.0
     video_out: Path | None = None  # write the annotated (overlay) video here
-    overlays: bool = True  # draw the config's overlays (rerun's camera/overlay and --video-out)
+    overlays: bool = True  # the config's overlays (meshes in the recording; drawn for --video-out / overlay_images)
     decode_queue: int = 4  # frames decoded ahead of the tracker (file and synthetic sources)
     output_queue: int = 8  # tracked frames waiting for their overlay, video and rerun log
     extra_summary: dict[str, Any] = field(default_factory=dict)
