@@ -13,7 +13,9 @@ import dataclasses
 import logging
 import math
 import time
+from collections.abc import Generator
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -24,7 +26,7 @@ from ..geometry import Pose, marker_corners_in_marker
 from ..sources.base import Frame
 from ..targets import TargetId, TrackState
 from .detection import FAST_MIN_SIDE_PX, Detector, MarkerDetections, mean_side, plan_regions
-from .filtering import TargetTrack, TrackEvent, decisive, margin_scale, unit_covariances_of
+from .filtering import KalmanBatch, TargetTrack, TrackEvent, decisive, margin_scale, unit_covariances_of
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
@@ -336,15 +338,27 @@ class Tracker:
     def _filter(
         self, measured: dict[TargetId, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
     ) -> dict[TargetId, TargetResult]:
+        """Every track's update, their numeric steps taken for all targets at once: the pose covariances
+        (:func:`~.filtering.unit_covariances_of`) and the smoothers' Kalman steps (each track's update runs
+        as steps, :meth:`~.filtering.TargetTrack.update_steps`, paused while a :class:`KalmanBatch` takes
+        the steps they queued)."""
         targets: dict[TargetId, TargetResult] = {}
-        unit = unit_covariances_of(list(measured.values()), camera)  # all targets' at once
-        for name in TargetId.ordered(set(measured) | set(self.tracks)):
+        unit = unit_covariances_of(list(measured.values()), camera)
+        batch = KalmanBatch()
+        names = TargetId.ordered(set(measured) | set(self.tracks))
+        steps = {}
+        for name in names:
             solved = measured.get(name)
             track = self.tracks.get(name)
             if track is None:
                 assert solved is not None
                 track = self.tracks[name] = TargetTrack(self.config.filter, solved.points_in_target)
-            update = track.update(solved, timestamp_ns, camera, blurred=blurred, unit_covariances=unit)
+            steps[name] = track.update_steps(
+                solved, timestamp_ns, camera, blurred=blurred, unit_covariances=unit, batch=batch
+            )
+        updates = _run_in_step(steps, batch)
+        for name in names:
+            solved, track, update = measured.get(name), self.tracks[name], updates[name]
             for event in update.events if update is not None else ():
                 log.info("%s: %s", name, event.message)
             if update is None:  # nothing to publish: a gap too long to predict through, or lost for good
@@ -433,6 +447,22 @@ class Tracker:
         self._last_corners, self._before_corners, self._seen = {}, {}, {}
         self._frames_since_full = self._frames_since_thorough = 0
         self._last_size = None
+
+
+def _run_in_step(steps: dict[TargetId, Generator[None, None, Any]], batch: KalmanBatch) -> dict[TargetId, Any]:
+    """Advance every generator a step at a time, taking ``batch``'s queued steps after each round; their
+    return values, by name."""
+    results: dict[TargetId, Any] = {}
+    pending = dict(steps)
+    while pending:
+        for name, generator in list(pending.items()):
+            try:
+                next(generator)
+            except StopIteration as done:
+                results[name] = done.value
+                del pending[name]
+        batch.run()
+    return results
 
 
 _REPEAT_PX = 0.25  # corners that moved less than this (every one) are a repeated frame's

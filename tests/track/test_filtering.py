@@ -14,6 +14,7 @@ from ar_anchor.camera import CameraModel
 from ar_anchor.config import FilterConfig, demo_config
 from ar_anchor.geometry import Pose, angle_between_deg, marker_corners_in_marker, matrix_from_rvec
 from ar_anchor.track.filtering import (
+    KalmanBatch,
     RotationFilter,
     TargetTrack,
     TranslationFilter,
@@ -362,3 +363,44 @@ def test_filter_config_values_are_validated(tmp_path, key):
     path.write_text(f"[filter]\n{key} = -1\n")
     with pytest.raises(ConfigError, match=rf"\[filter\] {key}"):
         load_config(path)
+
+
+def test_tracks_updated_in_steps_with_one_kalman_batch_give_the_same_results_as_alone(camera):
+    # given three moving targets, one missing now and then (coasting) and one seen again after a gap (restart)
+    rng = np.random.default_rng(7)
+    config = FilterConfig()
+    alone = [TargetTrack(config, marker_corners_in_marker(0.05)) for _ in range(3)]
+    batched = [TargetTrack(config, marker_corners_in_marker(0.05)) for _ in range(3)]
+    for k in range(60):
+        measurements = []
+        for index in range(3):
+            truth = Pose.from_matrix(
+                matrix_from_rvec(np.array([0.3 + 0.01 * k * index, 0.2, 0.05 * index])) @ np.diag([1.0, -1.0, -1.0]),
+                [0.1 * index, 0.002 * k, 1.0 + 0.5 * index],
+            )
+            seen = not (index == 1 and k % 7 == 3) and not (index == 2 and 20 <= k < 40)
+            noisy = rng.uniform(0.08, 0.12), rng.uniform(0.15, 0.5)
+            measurements.append(hypotheses_for(truth, mirrored(truth), camera, *noisy) if seen else None)
+        ns = int(k * DT * 1e9)
+        # when one set of tracks is updated one by one, and the other in steps sharing one Kalman batch
+        expected = [track.update(m, ns, camera) for track, m in zip(alone, measurements)]
+        batch = KalmanBatch()
+        steps = [track.update_steps(m, ns, camera, batch=batch) for track, m in zip(batched, measurements)]
+        got: dict[int, object] = {}
+        while len(got) < len(steps):
+            for index, step in enumerate(steps):
+                if index in got:
+                    continue
+                try:
+                    next(step)
+                except StopIteration as done:
+                    got[index] = done.value
+            batch.run()
+        # then every update is the same: state, pose and events
+        for index, update in enumerate(expected):
+            other = got[index]
+            assert (update is None) == (other is None), (k, index)
+            if update is not None:
+                assert update.state == other.state and update.events == other.events, (k, index)
+                np.testing.assert_allclose(other.pose.rvec, update.pose.rvec, rtol=0, atol=1e-12)
+                np.testing.assert_allclose(other.pose.tvec, update.pose.tvec, rtol=0, atol=1e-12)

@@ -47,10 +47,11 @@ target's best guess) and :mod:`.track` (:class:`TargetTrack`, which puts them to
 
 from .evidence import TrackEvent, decisive, margin_scale
 from .noise import pose_covariance, unit_covariances_of
-from .smoothing import RotationFilter, TranslationFilter, so3_exp, so3_log
+from .smoothing import KalmanBatch, RotationFilter, TranslationFilter, so3_exp, so3_log
 from .track import TargetTrack, TrackUpdate
 
 __all__ = [
+    "KalmanBatch",
     "RotationFilter",
     "TargetTrack",
     "TrackEvent",

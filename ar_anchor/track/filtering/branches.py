@@ -3,8 +3,9 @@ frame's solutions to them, and their smoothers (see the package doc)."""
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,7 +16,7 @@ from ...config import FilterConfig
 from ...geometry import Pose, angle_between_deg, vector_norm
 from ..pose import BoardPose, MarkerPose, PoseHypothesis
 from .noise import CornerNoise
-from .smoothing import RotationFilter, TranslationFilter, so3_exp
+from .smoothing import KalmanBatch, RotationFilter, TranslationFilter, so3_exp
 
 __all__ = ["BranchPair", "tilt_of"]
 
@@ -223,42 +224,54 @@ class BranchPair:
         restart: bool,
     ) -> None:
         """The smoothers take this frame's measurements (``restart``: after a gap, from them)."""
-        self._update_rotations(assigned, camera, gap_s, restart)
-        self._update_translation(measurement, camera, gap_s, restart)
+        for _ in self.update_steps(assigned, measurement, camera, gap_s, restart):
+            pass
 
-    def _update_rotations(
-        self, assigned: list[PoseHypothesis | None], camera: CameraModel, gap_s: float, restart: bool
-    ) -> None:
-        """Each branch's smoother takes its measurement. A measurement is never rejected: a smoother
-        that finds it implausibly far (``reset_angle_deg``), or that has not seen its branch for longer
-        than ``restart_gap_s``, restarts from it."""
+    def update_steps(
+        self,
+        assigned: list[PoseHypothesis | None],
+        measurement: MarkerPose | BoardPose,
+        camera: CameraModel,
+        gap_s: float,
+        restart: bool,
+        batch: KalmanBatch | None = None,
+    ) -> Iterator[None]:
+        """:meth:`update` in steps, its Kalman steps queued in ``batch`` (None: taken at once): it pauses
+        (yields) after queueing the predictions and after queueing the updates, for the caller to take
+        the batch's steps (:meth:`KalmanBatch.run`) with other tracks' before going on.
+
+        Each branch's smoother takes its measurement. A measurement is never rejected: a smoother that
+        finds it implausibly far (``reset_angle_deg``), or that has not seen its branch for longer than
+        ``restart_gap_s``, restarts from it. The translation smoother takes the better solution's."""
         cfg = self.config
-        limit = math.radians(cfg.max_angular_rate_deg_s)
+        measured = [
+            (branch.smoother, hypothesis)
+            for branch, hypothesis in zip(self.branches, assigned)
+            if branch is not None and hypothesis is not None
+        ]
         for branch, hypothesis in zip(self.branches, assigned):
-            if branch is None or hypothesis is None:
-                continue
+            if branch is not None and hypothesis is not None:
+                branch.last = hypothesis.pose.rotation
+        if not restart:
+            for smoother, _ in measured:
+                smoother.predict(gap_s, batch)
+            self.translation_filter.predict(gap_s, batch)
+        yield
+        limit = math.radians(cfg.max_angular_rate_deg_s)
+        for smoother, hypothesis in measured:
             pose = hypothesis.pose
             cov_rot, _ = self.noise.covariance(pose, camera)
-            smoother = branch.smoother
-            if not restart:
-                smoother.predict(gap_s)
             jump = math.degrees(vector_norm(smoother.innovation(pose.rotation)))
             if restart or jump > cfg.reset_angle_deg:
                 smoother.reset(pose.rotation, cov_rot)
-            else:
-                smoother.update(pose.rotation, cov_rot)
-                smoother.limit_rate(limit)  # bounded angular velocity, per motion model
-            branch.last = pose.rotation
-
-    def _update_translation(
-        self, measurement: MarkerPose | BoardPose, camera: CameraModel, gap_s: float, restart: bool
-    ) -> None:
+            else:  # then a bounded angular velocity, per motion model
+                smoother.update(pose.rotation, cov_rot, batch, after=functools.partial(smoother.limit_rate, limit))
         pose = measurement.best.pose
         _, cov_t = self.noise.covariance(pose, camera)
         if restart:
             self.translation_filter = TranslationFilter(
-                pose.tvec, cov_t, self.config.still_translation_m_sqrt_s, self.config.linear_accel_moving_m_s2
+                pose.tvec, cov_t, cfg.still_translation_m_sqrt_s, cfg.linear_accel_moving_m_s2
             )
-            return
-        self.translation_filter.predict(gap_s)
-        self.translation_filter.update(pose.tvec, cov_t)
+        else:
+            self.translation_filter.update(pose.tvec, cov_t, batch)
+        yield

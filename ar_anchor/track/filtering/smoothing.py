@@ -3,20 +3,23 @@ IMM of a *still* and a *moving* constant-velocity model (see the package doc).""
 
 from __future__ import annotations
 
-import math
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from ...geometry import matrix_from_rvec, rvec_from_matrix
 
 __all__ = [
+    "KalmanBatch",
     "RotationFilter",
     "TranslationFilter",
     "TwoModeCV",
     "cv_process_noise",
     "cv_transition",
+    "predict_all",
     "so3_exp",
     "so3_log",
+    "update_all",
 ]
 
 
@@ -75,8 +78,6 @@ class TwoModeCV:
     that. ``tests/test_filtering.py`` checks it against filterpy's own IMM, step by step.
     """
 
-    _H_ROWS = slice(0, 3)  # H = [I 0]: the measurement is the state's first three entries
-
     def __init__(
         self, x0: np.ndarray, p0: np.ndarray, still_sigma: float, accel_moving: float, switch_probability: float = 0.02
     ) -> None:
@@ -105,16 +106,16 @@ class TwoModeCV:
 
     def _combine(self) -> None:
         """The IMM's output: the models' states and covariances weighed by the mode probabilities."""
-        self._x = self.mu @ self.xs
-        spread = self.xs - self._x
-        self._P = (self.mu @ self.Ps.reshape(2, 36)).reshape(6, 6) + (self.mu[:, None] * spread).T @ spread
+        x, p = _combined(self.mu[None], self.xs[None], self.Ps[None])
+        self._x, self._P = x[0], p[0]
 
-    def _models(self, dt: float) -> None:
-        """Transition and process noise of both models for a step of ``dt`` (the still model: position
-        kept, velocity zeroed, a random walk; the moving one: :func:`cv_transition`, :func:`cv_process_noise`).
-        Shared by every filter of the same settings (read only): a video's steps take few distinct values."""
+    def models(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Transition, its transpose and process noise of both models for a step of ``dt`` (the still model:
+        position kept, velocity zeroed, a random walk; the moving one: :func:`cv_transition`,
+        :func:`cv_process_noise`). Shared by every filter of the same settings (read only): a video's steps
+        take few distinct values."""
         if dt == self._dt:
-            return
+            return self._F, self._FT, self._Q
         key = (dt, self.still_sigma, self.accel_moving)
         models = _MODELS.get(key)
         if models is None:
@@ -133,39 +134,15 @@ class TwoModeCV:
             _MODELS[key] = models
         self._F, self._FT, self._Q = models
         self._dt = dt
+        return models
 
     def predict(self, dt: float) -> None:
         """IMM predict over ``dt`` seconds: mix the two models, then propagate each."""
-        self._models(dt)
-        # mixing: model j starts from the mixture of both models, weighed by P(was i | is j)
-        cbar = self.mu @ self.M
-        omega = self.M * self.mu[:, None] / cbar[None, :]  # omega[i, j]
-        mixed_x = omega.T @ self.xs
-        spread = self.xs[None, :, :] - mixed_x[:, None, :]  # [j, i, :]
-        weighted = omega.T[:, :, None] * spread  # [j, i, :]
-        mixed_p = (omega.T @ self.Ps.reshape(2, 36)).reshape(2, 6, 6) + weighted.transpose(0, 2, 1) @ spread
-        self.xs = (self._F @ mixed_x[:, :, None])[:, :, 0]
-        self.Ps = self._F @ mixed_p @ self._FT + self._Q
-        self._combine()
+        predict_all([self], [dt])
 
     def update(self, z: np.ndarray, cov: np.ndarray) -> None:
         """IMM update with measurement ``z`` (3,) of covariance ``cov`` (3, 3): update each model, reweigh the modes."""
-        z = np.asarray(z, np.float64).reshape(3)
-        cov = np.asarray(cov, np.float64)
-        rows = self._H_ROWS
-        innovation = z - self.xs[:, rows]  # (2, 3)
-        pht = self.Ps[:, :, rows]  # P H^T, (2, 6, 3)
-        s = self.Ps[:, rows, rows] + cov  # (2, 3, 3)
-        s_inv = np.linalg.inv(s)
-        gain = pht @ s_inv  # (2, 6, 3)
-        self.xs = self.xs + (gain @ innovation[:, :, None])[:, :, 0]
-        i_kh = _IDENTITY2.copy()
-        i_kh[:, :, rows] -= gain
-        self.Ps = i_kh @ self.Ps @ i_kh.transpose(0, 2, 1) + gain @ cov @ gain.transpose(0, 2, 1)
-        self.mu = self.mu @ self.M * _likelihoods(innovation, s, s_inv)
-        total = self.mu.sum()
-        self.mu = self.mu / total if total > 0 and math.isfinite(total) else np.array([0.5, 0.5])
-        self._combine()
+        update_all([self], [z], [cov])
 
     def shift(self, delta: np.ndarray) -> None:
         """Subtract ``delta`` from the first three state entries (after folding them into a nominal state)."""
@@ -174,16 +151,117 @@ class TwoModeCV:
         self._x[:3] -= delta
 
 
+# ---------------------------------------------------------------------------- the IMM steps, over many filters
+# Each function takes B filters' arrays stacked on a first axis: xs (B, 2, 6), Ps (B, 2, 6, 6), mu (B, 2),
+# M (B, 2, 2); one numpy call per operation whatever B (a frame's targets run three filters each).
+
+
+def _combined(mu: np.ndarray, xs: np.ndarray, ps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The IMM's outputs (B, 6), (B, 6, 6): the models weighed by the mode probabilities."""
+    x = (mu[:, None, :] @ xs)[:, 0]
+    spread = xs - x[:, None, :]
+    p = (mu[:, None, :] @ ps.reshape(len(ps), 2, 36)).reshape(-1, 6, 6)
+    return x, p + (mu[:, :, None] * spread).transpose(0, 2, 1) @ spread
+
+
+def predict_all(filters: Sequence[TwoModeCV], dts: Sequence[float]) -> None:
+    """:meth:`TwoModeCV.predict` of each filter over its own ``dt``, all at once."""
+    models = [f.models(dt) for f, dt in zip(filters, dts)]
+    transition, transposed, noise = (np.stack([m[k] for m in models]) for k in range(3))
+    xs, ps, mu, markov = _gather(filters)
+    # mixing: model j starts from the mixture of both models, weighed by P(was i | is j)
+    cbar = (mu[:, None, :] @ markov)[:, 0]
+    omega_t = (markov * mu[:, :, None] / cbar[:, None, :]).transpose(0, 2, 1)  # [b, j, i]
+    mixed_x = omega_t @ xs
+    spread = xs[:, None, :, :] - mixed_x[:, :, None, :]  # [b, j, i, :]
+    weighted = omega_t[..., None] * spread
+    mixed_p = (omega_t @ ps.reshape(-1, 2, 36)).reshape(-1, 2, 6, 6) + weighted.transpose(0, 1, 3, 2) @ spread
+    xs = (transition @ mixed_x[..., None])[..., 0]
+    ps = transition @ mixed_p @ transposed + noise
+    _scatter(filters, xs, ps, mu)
+
+
+def update_all(filters: Sequence[TwoModeCV], zs: Sequence[np.ndarray], covs: Sequence[np.ndarray]) -> None:
+    """:meth:`TwoModeCV.update` of each filter with its own measurement and covariance, all at once."""
+    xs, ps, mu, markov = _gather(filters)
+    z = np.asarray(zs, np.float64).reshape(-1, 3)
+    cov = np.asarray(covs, np.float64).reshape(-1, 1, 3, 3)
+    innovation = z[:, None, :] - xs[:, :, :3]  # (B, 2, 3)
+    s = ps[:, :, :3, :3] + cov
+    s_inv = np.linalg.inv(s)
+    gain = ps[:, :, :, :3] @ s_inv  # P H^T S^-1, (B, 2, 6, 3)
+    xs = xs + (gain @ innovation[..., None])[..., 0]
+    i_kh = np.broadcast_to(_IDENTITY2, ps.shape).copy()
+    i_kh[..., :3] -= gain
+    ps = i_kh @ ps @ i_kh.transpose(0, 1, 3, 2) + gain @ cov @ gain.transpose(0, 1, 3, 2)
+    mu = (mu[:, None, :] @ markov)[:, 0] * _likelihoods(innovation, s, s_inv)
+    total = mu.sum(axis=1)
+    fine = (total > 0) & np.isfinite(total)
+    mu = np.where(fine[:, None], mu / np.where(fine, total, 1.0)[:, None], 0.5)
+    _scatter(filters, xs, ps, mu)
+
+
+def _gather(filters: Sequence[TwoModeCV]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    if len(filters) == 1:
+        f = filters[0]
+        return f.xs[None], f.Ps[None], f.mu[None], f.M[None]
+    return (
+        np.stack([f.xs for f in filters]),
+        np.stack([f.Ps for f in filters]),
+        np.stack([f.mu for f in filters]),
+        np.stack([f.M for f in filters]),
+    )
+
+
+def _scatter(filters: Sequence[TwoModeCV], xs: np.ndarray, ps: np.ndarray, mu: np.ndarray) -> None:
+    x, p = _combined(mu, xs, ps)
+    for k, f in enumerate(filters):
+        f.xs, f.Ps, f.mu, f._x, f._P = xs[k], ps[k], mu[k], x[k], p[k]
+
+
 def _likelihoods(innovations: np.ndarray, covariances: np.ndarray, inverses: np.ndarray) -> np.ndarray:
-    """Gaussian likelihood of each model's innovation (M, 3) under its covariance (M, 3, 3) (with its
-    inverse), relative to the largest: the IMM normalises them anyway, and relative values cannot all
-    underflow to zero. A model whose covariance is not positive definite gets likelihood zero."""
+    """Gaussian likelihood of each model's innovation (B, 2, 3) under its covariance (B, 2, 3, 3) (with its
+    inverse), relative to the filter's largest: the IMM normalises them anyway, and relative values cannot
+    all underflow to zero. A model whose covariance is not positive definite gets likelihood zero (both: one)."""
     sign, log_det = np.linalg.slogdet(covariances)
-    mahalanobis = np.einsum("mi,mij,mj->m", innovations, inverses, innovations)
+    mahalanobis = (innovations[..., None, :] @ inverses @ innovations[..., None])[..., 0, 0]
     log_l = np.where((sign > 0) & (mahalanobis >= 0), -0.5 * mahalanobis - 0.5 * log_det, -np.inf)
-    if not np.isfinite(log_l).any():
-        return np.ones(len(innovations))
-    return np.exp(log_l - log_l[np.isfinite(log_l)].max())
+    finite = np.isfinite(log_l)
+    best = np.where(finite, log_l, -np.inf).max(axis=1)
+    any_finite = finite.any(axis=1)
+    relative = np.exp(log_l - np.where(any_finite, best, 0.0)[:, None])
+    return np.where(any_finite[:, None], relative, 1.0)
+
+
+class KalmanBatch:
+    """The Kalman steps of a frame's tracks, gathered and taken at once (:func:`predict_all`,
+    :func:`update_all`): each filter's step is queued with what must follow it (``after``: a rotation
+    filter folds its error into its rotation), and :meth:`run` takes the queued predictions, then the
+    queued updates, each followed by its ``after`` in the order queued."""
+
+    def __init__(self) -> None:
+        self._predicts: list[tuple[TwoModeCV, float, Callable[[], None] | None]] = []
+        self._updates: list[tuple[TwoModeCV, np.ndarray, np.ndarray, Callable[[], None] | None]] = []
+
+    def predict(self, cv: TwoModeCV, dt: float, after: Callable[[], None] | None = None) -> None:
+        self._predicts.append((cv, dt, after))
+
+    def update(self, cv: TwoModeCV, z: np.ndarray, cov: np.ndarray, after: Callable[[], None] | None = None) -> None:
+        self._updates.append((cv, z, cov, after))
+
+    def run(self) -> None:
+        predicts, updates = self._predicts, self._updates
+        self._predicts, self._updates = [], []
+        if predicts:
+            predict_all([p[0] for p in predicts], [p[1] for p in predicts])
+            for *_, after in predicts:
+                if after is not None:
+                    after()
+        if updates:
+            update_all([u[0] for u in updates], [u[1] for u in updates], [u[2] for u in updates])
+            for *_, after in updates:
+                if after is not None:
+                    after()
 
 
 class RotationFilter:
@@ -228,7 +306,11 @@ class RotationFilter:
         self.rotation = self.rotation @ so3_exp(delta)
         self.cv.shift(delta)
 
-    def predict(self, dt: float) -> None:
+    def predict(self, dt: float, batch: KalmanBatch | None = None) -> None:
+        """Predict over ``dt`` seconds (``batch``: queued there, taken with the frame's other filters)."""
+        if batch is not None:
+            batch.predict(self.cv, dt, after=self._fold)
+            return
         self.cv.predict(dt)
         self._fold()
 
@@ -236,9 +318,25 @@ class RotationFilter:
         """Body-frame rotation vector from the current estimate to a measurement."""
         return so3_log(self.rotation.T @ measured)
 
-    def update(self, measured: np.ndarray, cov: np.ndarray) -> None:
+    def update(
+        self,
+        measured: np.ndarray,
+        cov: np.ndarray,
+        batch: KalmanBatch | None = None,
+        after: Callable[[], None] | None = None,
+    ) -> None:
+        """Take the measured rotation (covariance ``cov``), then call ``after`` (``batch``: queued there)."""
+
+        def fold() -> None:
+            self._fold()
+            if after is not None:
+                after()
+
+        if batch is not None:
+            batch.update(self.cv, self.innovation(measured), cov, after=fold)
+            return
         self.cv.update(self.innovation(measured), cov)
-        self._fold()
+        fold()
 
     def limit_rate(self, limit: float) -> None:
         """Bound each motion model's angular velocity to ``limit`` (rad/s)."""
@@ -265,8 +363,16 @@ class TranslationFilter:
     def velocity(self) -> np.ndarray:
         return self.cv.x[3:].copy()
 
-    def predict(self, dt: float) -> None:
-        self.cv.predict(dt)
+    def predict(self, dt: float, batch: KalmanBatch | None = None) -> None:
+        """Predict over ``dt`` seconds (``batch``: queued there, taken with the frame's other filters)."""
+        if batch is not None:
+            batch.predict(self.cv, dt)
+        else:
+            self.cv.predict(dt)
 
-    def update(self, measured: np.ndarray, cov: np.ndarray) -> None:
-        self.cv.update(measured, cov)
+    def update(self, measured: np.ndarray, cov: np.ndarray, batch: KalmanBatch | None = None) -> None:
+        """Take the measured translation (covariance ``cov``; ``batch``: queued there)."""
+        if batch is not None:
+            batch.update(self.cv, measured, cov)
+        else:
+            self.cv.update(measured, cov)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import collections
 import math
-from collections.abc import Mapping
+from collections.abc import Generator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +18,7 @@ from ..pose import BoardPose, MarkerPose, PoseHypothesis
 from .branches import BranchPair
 from .evidence import FlipEvidence, TrackEvent, raw_pick
 from .noise import CornerNoise
-from .smoothing import so3_exp, so3_log
+from .smoothing import KalmanBatch, so3_exp, so3_log
 
 __all__ = ["TargetTrack", "TrackUpdate"]
 
@@ -88,13 +88,38 @@ class TargetTrack:
         Returns None when there is nothing to publish: no track, a gap too long to predict through
         (the track stays :attr:`alive`, keeping its flip memory, until ``memory_s``), or a reset.
         """
+        for_steps = self.update_steps(
+            measurement, timestamp_ns, camera, blurred=blurred, unit_covariances=unit_covariances
+        )
+        while True:
+            try:
+                next(for_steps)
+            except StopIteration as done:
+                return done.value
+
+    def update_steps(
+        self,
+        measurement: MarkerPose | BoardPose | None,
+        timestamp_ns: int,
+        camera: CameraModel,
+        *,
+        blurred: bool = False,
+        unit_covariances: Mapping[int, tuple[Pose, np.ndarray]] | None = None,
+        batch: KalmanBatch | None = None,
+    ) -> Generator[None, None, TrackUpdate | None]:
+        """:meth:`update` in steps, for a caller that takes the Kalman steps of all its tracks at once: the
+        smoothers' steps are queued in ``batch``, and the generator pauses (yields) after queueing the
+        predictions and after queueing the updates, for the caller to :meth:`~.smoothing.KalmanBatch.run`
+        them; its return value is :meth:`update`'s."""
         timestamp_ns = self._tick(timestamp_ns)
         events: list[TrackEvent] = []
         self.noise.new_frame(unit_covariances)
         if measurement is None:
             return self._coast(timestamp_ns, events, blurred)
-        assigned, restart_frame = self._measure(measurement, timestamp_ns, camera, events)
+        assigned, restart_frame, gap_s = self._measure(measurement, timestamp_ns, camera, events)
         assert self.branches is not None
+        if gap_s is not None:  # (a new track's branches start from this measurement)
+            yield from self.branches.update_steps(assigned, measurement, camera, gap_s, restart_frame, batch)
         doubtful = self.branches.doubtful
         decided = self.evidence.judge(assigned, timestamp_ns, doubtful, self.frames, events)
         target = self.evidence.choose(assigned, decided, doubtful, timestamp_ns, self.output_branch)
@@ -131,10 +156,11 @@ class TargetTrack:
 
     def _measure(
         self, measurement: MarkerPose | BoardPose, timestamp_ns: int, camera: CameraModel, events: list[TrackEvent]
-    ) -> tuple[list[PoseHypothesis | None], bool]:
-        """Take this frame's measurement: its noise, and its solutions assigned to the branches, which
-        take them (a new track starts from them). Returns the assignment, and whether the branches
-        (re)started: a new track, or one seen again after a gap."""
+    ) -> tuple[list[PoseHypothesis | None], bool, float | None]:
+        """Take this frame's measurement: its noise, and its solutions assigned to the branches (a new
+        track starts from them; the branches' smoothers take them next: ``BranchPair.update_steps``).
+        Returns the assignment, whether the branches (re)started (a new track, or one seen again after a
+        gap), and the time since the last measurement (None: the track started now)."""
         self.noise.observe(measurement)
         gap_s = math.inf if self.measured_ns is None else (timestamp_ns - self.measured_ns) * 1e-9
         self.measured_ns = timestamp_ns
@@ -146,7 +172,7 @@ class TargetTrack:
             else math.inf
         )
         if self.branches is None:
-            return self._start(measurement, camera, events), True
+            return self._start(measurement, camera, events), True, None
         restart = self._is_gap(gap_s)
         if restart:
             events.append(TrackEvent("reacquired", f"seen again after {gap_s:.2f} s"))
@@ -157,8 +183,7 @@ class TargetTrack:
         # are within flip_angle_deg of each other either one is close enough, so unclarity costs nothing.)
         if branches.apart and branches.blind_s > self.config.crossing_blind_s and self.evidence.committed is not None:
             self.evidence.uncommit(branches.blind_s, events)
-        branches.update(assigned, measurement, camera, gap_s, restart)
-        return assigned, restart
+        return assigned, restart, gap_s
 
     def _is_gap(self, gap_s: float) -> bool:
         """Were frames missed for longer than ``restart_gap_s``? (At 5 fps every frame is 0.2 s after the
