@@ -21,6 +21,7 @@ from ar_anchor.track.filtering import (
     pose_covariance,
     unit_covariances_of,
 )
+from ar_anchor.track.filtering.linear import LinearKF, predict_linear, update_linear
 from ar_anchor.track.pose import MarkerPose, PoseHypothesis
 from tests.helpers import mirrored
 
@@ -171,6 +172,37 @@ def test_batched_covariances_are_each_poses_own(camera):
             own = pose_covariance(pose, measurement.points_in_target, camera, 0.3)
             np.testing.assert_allclose(0.09 * covariance[:3, :3], own[0], rtol=1e-9)
             np.testing.assert_allclose(0.09 * covariance[3:, 3:], own[1], rtol=1e-9)
+
+
+def test_linear_filter_steps_match_filterpys_kalman_filter_for_many_filters_at_once():
+    # given three of filterpy's 4-state constant-velocity filters and the same three as LinearKF
+    from filterpy.kalman import KalmanFilter
+
+    rng = np.random.default_rng(5)
+    reference, ours = [], []
+    for _ in range(3):
+        kf = KalmanFilter(dim_x=4, dim_z=2)
+        kf.H = np.hstack([np.eye(2), np.zeros((2, 2))])
+        kf.x = rng.normal(size=(4, 1))
+        kf.P = np.diag(rng.uniform(0.1, 1.0, 4))
+        reference.append(kf)
+        ours.append(LinearKF(kf.x.ravel(), kf.P, measured=2))
+    for _ in range(30):
+        # when each takes its own transition, process noise, measurement and measurement noise
+        dts = rng.uniform(0.01, 0.2, 3)
+        transitions = [np.eye(4) + np.diag([dt, dt], 2) for dt in dts]
+        noises = [np.kron([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]], np.eye(2)) for dt in dts]
+        zs = [rng.normal(size=2) for _ in range(3)]
+        rs = [np.eye(2) * rng.uniform(0.01, 0.5) for _ in range(3)]
+        for kf, f, q, z, r in zip(reference, transitions, noises, zs, rs):
+            kf.predict(F=f, Q=q)
+            kf.update(z.reshape(2, 1), R=r)
+        predict_linear(ours, transitions, noises)
+        update_linear(ours, zs, rs)
+        # then the states and covariances are filterpy's
+        for kf, mine in zip(reference, ours):
+            np.testing.assert_allclose(mine.x, kf.x.ravel(), rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(mine.P, kf.P, rtol=1e-10, atol=1e-12)
 
 
 # ---------------------------------------------------------------------------- the track, step by step

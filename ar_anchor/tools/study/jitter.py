@@ -26,7 +26,7 @@ from ...targets import TargetId
 from . import interrupt
 from .stats import Progress, finite
 
-# The tracker loads scipy and filterpy: it is imported where the study runs, so that `ar-anchor`'s
+# The tracker takes a while to import (OpenCV): it is imported where the study runs, so that `ar-anchor`'s
 # parser, which calls configure_parser, stays quick to build.
 if TYPE_CHECKING:
     from ...track.tracker import Tracker

@@ -22,7 +22,8 @@ Per target, a :class:`TargetTrack` carries
   other solution alone, or much better by ``decisive_ratio`` and ``decisive_sigmas``).
 * a **smoother** per branch: an error-state Kalman filter on SO(3) (rotation error as a body-frame
   rotation vector, so no Euler angles and no trouble near 180 degrees) and, shared, one on
-  translation, each an IMM (``filterpy``) of a *still* model that averages a static marker over many
+  translation, each an IMM (``filterpy``'s steps, taken for all of a frame's targets at once:
+  :class:`KalmanBatch`) of a *still* model that averages a static marker over many
   frames and a *moving* constant-velocity model. Measurement noise is the pose covariance implied by
   the corner noise through the projection Jacobian (it grows with distance and shrinks with marker
   size in pixels; the corner noise is estimated online, and a blurred frame's larger residuals make

@@ -5,16 +5,16 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 
 from ...camera import CameraModel
 from ...config import FilterConfig
 from ...geometry import Pose, angle_between_deg, vector_norm
 from ..pose import BoardPose, MarkerPose, PoseHypothesis
+from .linear import LinearKF, predict_linear, run_alone, update_linear
 from .noise import CornerNoise
 from .smoothing import KalmanBatch, RotationFilter, TranslationFilter, so3_exp
 
@@ -51,8 +51,6 @@ class _TiltTracker:
     _MAX_SIGMA = 0.5  # cap on the tilt's standard deviation (sine units)
 
     def __init__(self, tilt: np.ndarray, sigma: float, accel: float) -> None:
-        self.kf = KalmanFilter(dim_x=4, dim_z=2)
-        self.kf.H = np.hstack([np.eye(2), np.zeros((2, 2))])
         self.accel = accel
         self.blind_s = 0.0  # how long the choice has been unclear
         self._dt: float | None = None
@@ -60,39 +58,49 @@ class _TiltTracker:
 
     def reset(self, tilt: np.ndarray, sigma: float) -> None:
         """Start again at ``tilt`` at rest (after a long gap the old rate means nothing)."""
-        self.kf.x = np.concatenate([tilt, np.zeros(2)]).reshape(4, 1)
-        self.kf.P = np.diag([sigma**2, sigma**2, 1.0, 1.0])
+        self.kf = LinearKF(np.concatenate([tilt, np.zeros(2)]), np.diag([sigma**2, sigma**2, 1.0, 1.0]), measured=2)
         self.blind_s = 0.0
 
     @property
     def tilt(self) -> np.ndarray:
-        return self.kf.x[:2, 0].copy()
+        return self.kf.x[:2].copy()
 
-    def predict(self, dt: float) -> None:
+    def predict(self, dt: float, batch: KalmanBatch | None = None) -> None:
+        """Predict over ``dt`` seconds (``batch``: queued there, taken with the frame's other filters)."""
         if dt != self._dt:  # state [tilt_x, tilt_y, rate_x, rate_y]
             self._dt = dt
             self._f = np.eye(4)
             self._f[0, 2] = self._f[1, 3] = dt
             self._q = np.kron(self.accel**2 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]), np.eye(2))
-        self.kf.predict(F=self._f, Q=self._q)
+        if batch is not None:
+            batch.predict_linear(self.kf, self._f, self._q, after=self._bound)
+            return
+        predict_linear([self.kf], [self._f], [self._q])
         self._bound()
 
     def _bound(self) -> None:
-        rate = self.kf.x[2:, 0]
+        rate = self.kf.x[2:]
         speed = vector_norm(rate)
         if speed > self._MAX_RATE:
-            self.kf.x[2:, 0] = rate * (self._MAX_RATE / speed)
-        block = self.kf.P[:2, :2]
-        largest = float(np.max(np.linalg.eigvalsh(block)))
+            self.kf.x[2:] = rate * (self._MAX_RATE / speed)
+        (a, _), (c, d) = self.kf.P[:2, :2].tolist()
+        largest = 0.5 * (a + d) + math.sqrt(0.25 * (a - d) ** 2 + c * c)  # of the 2x2 block (its lower triangle)
         if largest > self._MAX_SIGMA**2:
             self.kf.P[:2, :] *= math.sqrt(self._MAX_SIGMA**2 / largest)
             self.kf.P[:, :2] *= math.sqrt(self._MAX_SIGMA**2 / largest)
 
-    def choose(self, first: np.ndarray, second: np.ndarray | None, sigma: float, dt: float) -> tuple[bool, bool]:
+    def choose(
+        self,
+        first: np.ndarray,
+        second: np.ndarray | None,
+        sigma: float,
+        dt: float,
+        batch: KalmanBatch | None = None,
+    ) -> tuple[bool, bool]:
         """Is ``first`` (rather than ``second``, by default its mirror) branch 0's tilt, and is that clear?
 
         The pair is matched as a whole: branch 0 near the prediction and branch 1 near its mirror. Always
-        updates (an unclear choice with its noise inflated by the unclarity)."""
+        updates (an unclear choice with its noise inflated by the unclarity; ``batch``: queued there)."""
         predicted = self.tilt
         second = -first if second is None else second
         straight = vector_norm(first - predicted) + vector_norm(second + predicted)
@@ -101,9 +109,13 @@ class _TiltTracker:
         is_branch0 = straight <= swapped
         clear = 0.5 * abs(straight - swapped) > spread
         self.blind_s = 0.0 if clear else self.blind_s + dt
-        noise = sigma**2 if clear else sigma**2 + spread**2
-        self.kf.update((first if is_branch0 else second).reshape(2, 1), R=np.eye(2) * noise)
-        self._bound()
+        noise = np.eye(2) * (sigma**2 if clear else sigma**2 + spread**2)
+        measured = first if is_branch0 else second
+        if batch is not None:
+            batch.update_linear(self.kf, measured, noise, after=self._bound)
+        else:
+            update_linear([self.kf], [measured], [noise])
+            self._bound()
         return is_branch0, clear
 
 
@@ -180,6 +192,19 @@ class BranchPair:
         whose tilt continues the tilt tracker's prediction (see :class:`_TiltTracker`); after a long gap,
         the one nearer branch 0's last tilt (the tracker restarts at rest). A branch whose solution shows
         up for the first time starts. Sets :attr:`unclear`, :attr:`doubtful` and :attr:`apart`."""
+        return run_alone(self.associate_steps(measurement, camera, gap_s, restart, separation_deg))
+
+    def associate_steps(
+        self,
+        measurement: MarkerPose | BoardPose,
+        camera: CameraModel,
+        gap_s: float,
+        restart: bool,
+        separation_deg: float,
+        batch: KalmanBatch | None = None,
+    ) -> Generator[None, None, list[PoseHypothesis | None]]:
+        """:meth:`associate` in steps: it pauses (yields) after queueing the tilt tracker's prediction in
+        ``batch`` (None: taken at once), which the choice of branches needs."""
         hypotheses = measurement.hypotheses
         first = hypotheses[0]
         sigma = self._tilt_sigma(first.pose, camera)
@@ -187,9 +212,10 @@ class BranchPair:
             assert self.branches[0] is not None  # (a track starts with its lower-error solution on branch 0)
             self.tilts.reset(tilt_of(Pose.from_matrix(self.branches[0].last, first.pose.tvec)), sigma)
         else:
-            self.tilts.predict(gap_s)
+            self.tilts.predict(gap_s, batch)
+        yield
         second = tilt_of(hypotheses[1].pose) if len(hypotheses) > 1 else None
-        is_branch0, clear = self.tilts.choose(tilt_of(first.pose), second, sigma, 0.0 if restart else gap_s)
+        is_branch0, clear = self.tilts.choose(tilt_of(first.pose), second, sigma, 0.0 if restart else gap_s, batch)
         self.apart = len(hypotheses) == 2 and separation_deg > self.config.flip_angle_deg
         self.unclear = not clear and self.apart
         assigned: list[PoseHypothesis | None] = [None, None]
@@ -224,8 +250,7 @@ class BranchPair:
         restart: bool,
     ) -> None:
         """The smoothers take this frame's measurements (``restart``: after a gap, from them)."""
-        for _ in self.update_steps(assigned, measurement, camera, gap_s, restart):
-            pass
+        run_alone(self.update_steps(assigned, measurement, camera, gap_s, restart))
 
     def update_steps(
         self,
@@ -235,7 +260,7 @@ class BranchPair:
         gap_s: float,
         restart: bool,
         batch: KalmanBatch | None = None,
-    ) -> Iterator[None]:
+    ) -> Generator[None, None, None]:
         """:meth:`update` in steps, its Kalman steps queued in ``batch`` (None: taken at once): it pauses
         (yields) after queueing the predictions and after queueing the updates, for the caller to take
         the batch's steps (:meth:`KalmanBatch.run`) with other tracks' before going on.

@@ -8,6 +8,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ...geometry import matrix_from_rvec, rvec_from_matrix
+from .linear import LinearKF, predict_linear, update_linear
 
 __all__ = [
     "KalmanBatch",
@@ -234,14 +235,17 @@ def _likelihoods(innovations: np.ndarray, covariances: np.ndarray, inverses: np.
 
 
 class KalmanBatch:
-    """The Kalman steps of a frame's tracks, gathered and taken at once (:func:`predict_all`,
-    :func:`update_all`): each filter's step is queued with what must follow it (``after``: a rotation
-    filter folds its error into its rotation), and :meth:`run` takes the queued predictions, then the
-    queued updates, each followed by its ``after`` in the order queued."""
+    """The Kalman steps of a frame's tracks, gathered and taken at once: the IMM smoothers'
+    (:func:`predict_all`, :func:`update_all`) and the linear filters' (the tilt trackers:
+    :func:`~.linear.predict_linear`, :func:`~.linear.update_linear`). Each step is queued with what must
+    follow it (``after``: a rotation filter folds its error into its rotation), and :meth:`run` takes the
+    queued predictions, then the queued updates, each followed by its ``after`` in the order queued."""
 
     def __init__(self) -> None:
         self._predicts: list[tuple[TwoModeCV, float, Callable[[], None] | None]] = []
         self._updates: list[tuple[TwoModeCV, np.ndarray, np.ndarray, Callable[[], None] | None]] = []
+        self._linear_predicts: list[tuple[LinearKF, np.ndarray, np.ndarray, Callable[[], None] | None]] = []
+        self._linear_updates: list[tuple[LinearKF, np.ndarray, np.ndarray, Callable[[], None] | None]] = []
 
     def predict(self, cv: TwoModeCV, dt: float, after: Callable[[], None] | None = None) -> None:
         self._predicts.append((cv, dt, after))
@@ -249,19 +253,37 @@ class KalmanBatch:
     def update(self, cv: TwoModeCV, z: np.ndarray, cov: np.ndarray, after: Callable[[], None] | None = None) -> None:
         self._updates.append((cv, z, cov, after))
 
+    def predict_linear(
+        self, kf: LinearKF, transition: np.ndarray, noise: np.ndarray, after: Callable[[], None] | None = None
+    ) -> None:
+        self._linear_predicts.append((kf, transition, noise, after))
+
+    def update_linear(
+        self, kf: LinearKF, z: np.ndarray, noise: np.ndarray, after: Callable[[], None] | None = None
+    ) -> None:
+        self._linear_updates.append((kf, z, noise, after))
+
     def run(self) -> None:
         predicts, updates = self._predicts, self._updates
-        self._predicts, self._updates = [], []
+        linear_predicts, linear_updates = self._linear_predicts, self._linear_updates
+        self._predicts, self._updates, self._linear_predicts, self._linear_updates = [], [], [], []
         if predicts:
             predict_all([p[0] for p in predicts], [p[1] for p in predicts])
-            for *_, after in predicts:
-                if after is not None:
-                    after()
+        if linear_predicts:
+            predict_linear(*zip(*[step[:3] for step in linear_predicts]))
+        _call_afters(predicts, linear_predicts)
         if updates:
             update_all([u[0] for u in updates], [u[1] for u in updates], [u[2] for u in updates])
-            for *_, after in updates:
-                if after is not None:
-                    after()
+        if linear_updates:
+            update_linear(*zip(*[step[:3] for step in linear_updates]))
+        _call_afters(updates, linear_updates)
+
+
+def _call_afters(*queues: Sequence[tuple]) -> None:
+    for queue in queues:
+        for *_, after in queue:
+            if after is not None:
+                after()
 
 
 class RotationFilter:

@@ -17,6 +17,7 @@ from ...targets import TrackState
 from ..pose import BoardPose, MarkerPose, PoseHypothesis
 from .branches import BranchPair
 from .evidence import FlipEvidence, TrackEvent, raw_pick
+from .linear import run_alone
 from .noise import CornerNoise
 from .smoothing import KalmanBatch, so3_exp, so3_log
 
@@ -88,14 +89,9 @@ class TargetTrack:
         Returns None when there is nothing to publish: no track, a gap too long to predict through
         (the track stays :attr:`alive`, keeping its flip memory, until ``memory_s``), or a reset.
         """
-        for_steps = self.update_steps(
-            measurement, timestamp_ns, camera, blurred=blurred, unit_covariances=unit_covariances
+        return run_alone(
+            self.update_steps(measurement, timestamp_ns, camera, blurred=blurred, unit_covariances=unit_covariances)
         )
-        while True:
-            try:
-                next(for_steps)
-            except StopIteration as done:
-                return done.value
 
     def update_steps(
         self,
@@ -116,7 +112,7 @@ class TargetTrack:
         self.noise.new_frame(unit_covariances)
         if measurement is None:
             return self._coast(timestamp_ns, events, blurred)
-        assigned, restart_frame, gap_s = self._measure(measurement, timestamp_ns, camera, events)
+        assigned, restart_frame, gap_s = yield from self._measure(measurement, timestamp_ns, camera, events, batch)
         assert self.branches is not None
         if gap_s is not None:  # (a new track's branches start from this measurement)
             yield from self.branches.update_steps(assigned, measurement, camera, gap_s, restart_frame, batch)
@@ -155,8 +151,13 @@ class TargetTrack:
         return timestamp_ns
 
     def _measure(
-        self, measurement: MarkerPose | BoardPose, timestamp_ns: int, camera: CameraModel, events: list[TrackEvent]
-    ) -> tuple[list[PoseHypothesis | None], bool, float | None]:
+        self,
+        measurement: MarkerPose | BoardPose,
+        timestamp_ns: int,
+        camera: CameraModel,
+        events: list[TrackEvent],
+        batch: KalmanBatch | None,
+    ) -> Generator[None, None, tuple[list[PoseHypothesis | None], bool, float | None]]:
         """Take this frame's measurement: its noise, and its solutions assigned to the branches (a new
         track starts from them; the branches' smoothers take them next: ``BranchPair.update_steps``).
         Returns the assignment, whether the branches (re)started (a new track, or one seen again after a
@@ -178,7 +179,7 @@ class TargetTrack:
             events.append(TrackEvent("reacquired", f"seen again after {gap_s:.2f} s"))
             self.evidence.reacquired()
         branches = self.branches
-        assigned = branches.associate(measurement, camera, gap_s, restart, self._separation_deg)
+        assigned = yield from branches.associate_steps(measurement, camera, gap_s, restart, self._separation_deg, batch)
         # Unclear for long while the solutions are far apart: which is which may have been lost. (While they
         # are within flip_angle_deg of each other either one is close enough, so unclarity costs nothing.)
         if branches.apart and branches.blind_s > self.config.crossing_blind_s and self.evidence.committed is not None:
