@@ -170,9 +170,12 @@ class Tracker:
         if not full:
             moving = {i: c for i, c in self._before_corners.items() if i in self._last_corners}
             regions = plan_regions(self._last_corners, moving, size, settings.roi_margin, cells=self.detector.cells)
-            detections = self.detector.detect_regions(image, regions, camera)
-            if not set(self._last_corners) <= set(detections.ids.tolist()):
-                detections = None  # a marker was missed: search everywhere
+            area = sum((r.x1 - r.x0) * (r.y1 - r.y0) for r in regions)
+            if area <= _MOST_OF_THE_FRAME * size[0] * size[1] or not self._fast_allowed(size):
+                detections = self.detector.detect_regions(image, regions, camera)
+                if not set(self._last_corners) <= set(detections.ids.tolist()):
+                    detections = None  # a marker was missed: search everywhere
+            # (else regions as large as most of the frame: the fast whole-frame search costs less)
         if detections is None:
             detections = self._search_whole_frame(image, camera, size)
             self._frames_since_full = 0
@@ -198,14 +201,7 @@ class Tracker:
         before (or a small one coming back) is found within ``roi_full_every`` frames.
         """
         settings = self.config.detector
-        fast = (
-            settings.roi
-            and size == self._last_size
-            and bool(self._seen)
-            and self._frames_since_thorough + 1 < settings.roi_full_every
-            and all(mean_side(corners) >= FAST_MIN_SIDE_PX for corners, _ in self._seen.values())
-        )
-        if not fast:
+        if not self._fast_allowed(size):
             self._frames_since_thorough = 0
             return self.detector.detect(image, camera)
         self._frames_since_thorough += 1
@@ -225,6 +221,17 @@ class Tracker:
             return detections
         return MarkerDetections(
             np.concatenate([detections.ids, again.ids[new]]), np.concatenate([detections.corners, again.corners[new]])
+        )
+
+    def _fast_allowed(self, size: tuple[int, int]) -> bool:
+        """May the next whole-frame search be the fast one (see :meth:`_search_whole_frame`)?"""
+        settings = self.config.detector
+        return (
+            settings.roi
+            and size == self._last_size
+            and bool(self._seen)
+            and self._frames_since_thorough + 1 < settings.roi_full_every
+            and all(mean_side(corners) >= FAST_MIN_SIDE_PX for corners, _ in self._seen.values())
         )
 
     def process(self, frame: Frame) -> FrameResult:
@@ -465,6 +472,7 @@ def _run_in_step(steps: dict[TargetId, Generator[None, None, Any]], batch: Kalma
     return results
 
 
+_MOST_OF_THE_FRAME = 0.4  # regions covering more than this share of the frame: a fast whole-frame search instead
 _REPEAT_PX = 0.25  # corners that moved less than this (every one) are a repeated frame's
 
 

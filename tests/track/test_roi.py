@@ -284,3 +284,30 @@ def test_a_marker_the_fast_search_misses_is_looked_for_in_its_region():
     # then its region is searched thoroughly in the same frame, and it is found where it is
     assert result.detections.ids.tolist() == [0]
     assert "marker:0" in result.targets and result.targets["marker:0"].state.measured
+
+
+def test_regions_covering_most_of_the_frame_give_way_to_the_fast_whole_frame_search():
+    # given three big markers (77-114 px) spread over a VGA frame: their regions cover about half of it
+    camera = CameraModel.from_fov(640, 480, 600.0)
+    markers = tuple(
+        PlacedMarker(i, 0.08, Pose(np.zeros(3), np.array([x, y, 0.0])))
+        for i, (x, y) in enumerate([(-0.12, 0.07), (0.12, 0.07), (0.0, -0.08)])
+    )
+    scene = SyntheticScene(
+        camera=camera, markers=markers, trajectory=Trajectory(kind="static", near_m=0.5), frames=8, noise_sigma=1.0
+    )
+    frames = list(SyntheticSource(scene))
+    tracker = Tracker(tracker_config(True, ids=(0, 1, 2), roi_full_every=15), camera)
+    calls = _counting_searches(tracker)
+    regions = {"calls": 0}
+    original = tracker.detector.detect_regions
+
+    def counting_regions(*args, **kwargs):
+        regions["calls"] += 1
+        return original(*args, **kwargs)
+
+    tracker.detector.detect_regions = counting_regions
+    found = [sorted(tracker.process(frame).detections.ids.tolist()) for frame in frames]
+    # then after the first (thorough) search every frame is searched whole, fast, and no region is searched
+    assert found == [[0, 1, 2]] * len(frames)
+    assert calls == {"fast": len(frames) - 1, "thorough": 1} and regions["calls"] == 0, (calls, regions)
