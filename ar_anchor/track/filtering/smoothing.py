@@ -264,6 +264,7 @@ class KalmanBatch:
         self._linear_updates.append((kf, z, noise, after))
 
     def run(self) -> None:
+        """Take every queued prediction, then every queued update (each kind in one call), then empty the queues."""
         predicts, updates = self._predicts, self._updates
         linear_predicts, linear_updates = self._linear_predicts, self._linear_updates
         self._predicts, self._updates, self._linear_predicts, self._linear_updates = [], [], [], []
