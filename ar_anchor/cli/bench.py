@@ -30,12 +30,13 @@ def add_parser(commands: Any) -> None:
     )
     bench.add_argument(
         "name",
-        choices=("stability", "boards", "overlay", "speed", "run", "real"),
+        choices=("stability", "boards", "overlay", "speed", "run", "real", "profile"),
         help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
         "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop; "
         "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p; "
         "real: relative-pose consistency of markers on one rigid sheet in a real video (tracker, its raw "
-        "per-frame pick, plain OpenCV), default chessboard.avi from $AR_ANCHOR_REALDATA",
+        "per-frame pick, plain OpenCV), default chessboard.avi from $AR_ANCHOR_REALDATA; profile: the tracker's CPU "
+        "per stage and its costliest functions (cProfile) on a real video (the same --video options as real)",
     )
     bench.add_argument("--video", type=Path, default=None, help="real: the video (default: chessboard.avi)")
     bench.add_argument(
@@ -86,7 +87,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     real = None
-    if args.name == "real":  # its data files are checked (exit 2) before anything is written
+    if args.name in ("real", "profile"):  # their data files are checked (exit 2) before anything is written
         from ..bench.real import real_inputs
 
         real = real_inputs(args.video, args.camera, args.dictionary, args.marker_length, args.layout)
@@ -102,7 +103,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"[{i + 1}/{total}] {name}", file=sys.stderr, flush=True)
 
-    if real is not None:
+    if args.name == "profile":
+        _profile(args, real, command)
+    elif real is not None:
         from ..bench.real import real_summary, write_real_report
 
         for option in ("video", "camera", "dictionary", "marker_length", "layout", "config"):
@@ -158,11 +161,23 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _profile(args: argparse.Namespace, real: Any, command: str) -> None:
+    """``bench profile``: the tracker (configured as ``ar-anchor replay`` would be) profiled on the video."""
+    from ..bench.profile import profile_tracker, write_profile_report
+
+    config = load_tracker_config(
+        argparse.Namespace(config=args.config, dictionary=real.dictionary, marker_length=real.marker_length_m)
+    )
+    write_profile_report(profile_tracker(real, config, frames=args.frames), args.out, command)
+
+
 def _checked_clips(args: argparse.Namespace) -> Any:
     """``--clips`` checked against the chosen benchmark's names: speed's (scenes, extra clips), run's parts,
     None when not given; :class:`InputError` (exit 2) for an unknown name or a benchmark without clips."""
     if args.clips is None and args.frames is None:
         return None
+    if args.name == "profile" and args.clips is None:
+        return None  # (--frames: the video's first frames only)
     if args.name not in ("speed", "run"):
         option = "--clips" if args.clips is not None else "--frames"
         raise InputError(f"{option}: only bench speed and bench run take it, not bench {args.name}")
