@@ -246,7 +246,7 @@ class Tracker:
         pixels (a 30 fps container carrying 12 fps content) returns the previous answer, marked
         ``repeated``: it is no new measurement.
         """
-        fingerprint = np.ascontiguousarray(frame.image[::4, ::4])
+        fingerprint = _every_4th_pixel(frame.image)
         candidate = self._previous is not None and self._repeats(fingerprint)
         result = self._process(frame, self._blurred(fingerprint), repeat_candidate=candidate)
         if result.repeated:
@@ -454,6 +454,15 @@ class Tracker:
         self._last_corners, self._before_corners, self._seen = {}, {}, {}
         self._frames_since_full = self._frames_since_thorough = 0
         self._last_size = None
+
+
+def _every_4th_pixel(image: np.ndarray) -> np.ndarray:
+    """``image[::4, ::4]``, contiguous: by OpenCV's nearest-neighbour resize where that picks the same pixels
+    (sides divisible by 4: a third of numpy's strided copy's time, without the GIL), else by numpy."""
+    height, width = image.shape[:2]
+    if height % 4 or width % 4 or height < 4 or width < 4:
+        return np.ascontiguousarray(image[::4, ::4])
+    return cv2.resize(image, (width // 4, height // 4), interpolation=cv2.INTER_NEAREST)
 
 
 def _run_in_step(steps: dict[TargetId, Generator[None, None, Any]], batch: KalmanBatch) -> dict[TargetId, Any]:

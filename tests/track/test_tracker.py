@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from ar_anchor import SyntheticSource, Tracker, demo_scene
 from ar_anchor.camera import CameraModel
@@ -72,3 +73,13 @@ def test_a_repeated_frame_is_the_previous_answer():
     first = tracker.process(frames[1])
     again = tracker.process(dataclasses.replace(frames[1], index=2, timestamp_ns=frames[2].timestamp_ns))
     assert again.repeated and not first.repeated and list(again.targets) == list(first.targets)
+
+
+@pytest.mark.parametrize("shape", [(1080, 1920, 3), (480, 640), (481, 643, 3), (6, 5, 3), (3, 3)])
+def test_the_fingerprint_is_every_4th_pixel_whatever_the_size(shape):
+    from ar_anchor.track.tracker import _every_4th_pixel
+
+    image = np.random.default_rng(1).integers(0, 256, shape, dtype=np.uint8)
+    fingerprint = _every_4th_pixel(image)
+    np.testing.assert_array_equal(fingerprint, image[::4, ::4])
+    assert fingerprint.flags.c_contiguous
