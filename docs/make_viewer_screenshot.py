@@ -1,17 +1,21 @@
-"""Screenshot the Rerun web viewer showing a recording's "AR overlay" view, on a headless machine.
+r"""Screenshot the Rerun web viewer showing a recording's "AR overlay" view, on a headless machine.
 
 Usage (the project's venv active, Debian's Chromium installed: ``apt-get install chromium``)::
 
-    python docs/make_viewer_screenshot.py --make demo --out docs/images/overlay_viewer_demo.png
-    python docs/make_viewer_screenshot.py --make real --out docs/images/overlay_viewer_real.png
+    python docs/make_viewer_screenshot.py --make demo --layout overlay --frame 10 \
+        --out docs/images/overlay_viewer_demo.png
+    python docs/make_viewer_screenshot.py --make real --layout overlay --out docs/images/overlay_viewer_real.png
     python docs/make_viewer_screenshot.py --recording run/recording.rrd --out shot.png --frame 120
+
+(the docs' two images; the demo's middle frame shows its markers at about 20 px, hence ``--frame 10``).
 
 ``--make demo`` records ``ar-anchor demo --frames 60``; ``--make real`` replays
 ``../shared/realdata/aruco_testdata/chessboard/chessboard.avi`` (``--realdata DIR`` or ``AR_ANCHOR_REALDATA``
 name another copy of ``realdata``); ``--recording FILE.rrd`` takes an existing recording instead.
 
 How: the recording and a blueprint (the run's own layout, ``run_blueprint()``, whose first tab is "AR
-overlay", plus a time panel on the ``frame`` timeline, paused) are served over HTTP on 127.0.0.1; the
+overlay", or with ``--layout overlay`` that view alone; plus a time panel on the ``frame`` timeline,
+paused) are served over HTTP on 127.0.0.1; the
 web viewer (``rr.serve_web_viewer``) opens both (``?url=<rrd>&url=<rbl>``) in headless Chromium, which
 renders with its SwiftShader software rasteriser (WebGL; the viewer says "Software rasterizer").
 Chromium is driven over the DevTools protocol (``--remote-debugging-pipe``, standard library only):
@@ -89,15 +93,19 @@ def make_recording(kind: str, out_dir: Path, realdata: Path) -> Path:
     return out_dir / "recording.rrd"
 
 
-def write_blueprint(path: Path) -> None:
-    """The run's layout (its first tab is "AR overlay") with the time panel on ``frame``, paused."""
+def write_blueprint(path: Path, layout: str = "run") -> None:
+    """The run's layout (its first tab is "AR overlay"), or (``overlay``) its "AR overlay" view alone, as the
+    view's maximise button shows it; either with the time panel on ``frame``, paused."""
     import rerun.blueprint as rrb
 
-    from ar_anchor.viz.blueprints import run_blueprint
+    from ar_anchor.viz.blueprints import PROJECTED, run_blueprint
 
-    layout = run_blueprint()
+    if layout == "run":
+        root = run_blueprint().root_container
+    else:
+        root = rrb.Spatial2DView(origin="world/camera", contents=list(PROJECTED), name="AR overlay")
     time_panel = rrb.TimePanel(state="collapsed", timeline="frame", play_state="paused")
-    rrb.Blueprint(layout.root_container, time_panel, collapse_panels=True).save("ar_anchor", path)
+    rrb.Blueprint(root, time_panel, collapse_panels=True).save("ar_anchor", path)
 
 
 # ---------------------------------------------------------------------------------------------- serving
@@ -360,7 +368,7 @@ def take(rrd: Path, args: argparse.Namespace, work: Path) -> np.ndarray:
     served = work / "served"
     served.mkdir()
     os.symlink(rrd.resolve(), served / "recording.rrd")
-    write_blueprint(served / "shot.rbl")
+    write_blueprint(served / "shot.rbl", args.layout)
     files, files_port = serve_files(served)
     viewer_port = free_port()
     rr.serve_web_viewer(web_port=viewer_port, open_browser=False)
@@ -420,6 +428,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--frame", type=int, help="frame to show (default: the middle of the frame timeline)")
     parser.add_argument("--size", default="1600x900", help="browser window, WIDTHxHEIGHT (default 1600x900)")
     parser.add_argument("--crop", help="keep X,Y,W,H of the window (pixels)")
+    parser.add_argument(
+        "--layout", choices=("run", "overlay"), default="run", help="the run's layout, or the AR overlay view alone"
+    )
     parser.add_argument("--max-kb", type=int, default=300, help="largest PNG, kilobytes (default 300)")
     parser.add_argument("--timeout", type=float, default=300.0, help="seconds for the viewer (default 300)")
     parser.add_argument("--chromium", help="the Chromium binary (default: chromium on PATH)")
