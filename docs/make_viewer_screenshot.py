@@ -15,8 +15,7 @@ name another copy of ``realdata``); ``--recording FILE.rrd`` takes an existing r
 
 How: the recording and a blueprint (the run's own layout, ``run_blueprint()``, whose first tab is "AR
 overlay", or with ``--layout overlay`` that view alone; plus a time panel on the ``frame`` timeline,
-paused) are served over HTTP on 127.0.0.1; the
-web viewer (``rr.serve_web_viewer``) opens both (``?url=<rrd>&url=<rbl>``) in headless Chromium, which
+paused) are served over HTTP on 127.0.0.1; the web viewer (``rr.serve_web_viewer``) opens both (``?url=<rrd>&url=<rbl>``) in headless Chromium, which
 renders with its SwiftShader software rasteriser (WebGL; the viewer says "Software rasterizer").
 Chromium is driven over the DevTools protocol (``--remote-debugging-pipe``, standard library only):
 the script waits until the viewer has loaded everything, moves the time cursor to ``--frame`` (default:
@@ -25,9 +24,13 @@ a protobuf ``SetTimeCursorRequest``; experimental in rerun 0.41), checks that th
 for the picture to settle, and writes the PNG: the whole viewer (``--size``), or a part of it (``--crop``),
 shrunk (``cv2``: smaller, then fewer colour levels) until it is at most ``--max-kb``.
 
+The recording is served on 127.0.0.1 only; ``rr.serve_web_viewer`` (no bind option) serves the viewer's
+static files on all interfaces while the script runs.
+
 A load takes about a minute on two cores (``--timeout`` bounds it). Exit status: 0 written; 1 the viewer,
-Chromium or the recording failed (the message says which; Chromium's log is kept); 2 bad arguments or
-Chromium missing (``--chromium PATH`` names another binary).
+Chromium or the recording failed (the message says which, with the end of Chromium's log; ``--keep DIR``
+keeps the recording, the raw PNG and that log); 2 bad arguments or Chromium missing (``--chromium PATH``
+names another binary).
 """
 
 from __future__ import annotations
