@@ -15,8 +15,9 @@ name another copy of ``realdata``); ``--recording FILE.rrd`` takes an existing r
 
 How: the recording and a blueprint (the run's own layout, ``run_blueprint()``, whose first tab is "AR
 overlay", or with ``--layout overlay`` that view alone; plus a time panel on the ``frame`` timeline,
-paused) are served over HTTP on 127.0.0.1; the web viewer (``rr.serve_web_viewer``) opens both (``?url=<rrd>&url=<rbl>``) in headless Chromium, which
-renders with its SwiftShader software rasteriser (WebGL; the viewer says "Software rasterizer").
+paused) are served over HTTP on 127.0.0.1; the web viewer (``rr.serve_web_viewer``) opens both
+(``?url=<rrd>&url=<rbl>``) in headless Chromium, which renders with its SwiftShader software rasteriser
+(WebGL; the viewer says "Software rasterizer").
 Chromium is driven over the DevTools protocol (``--remote-debugging-pipe``, standard library only):
 the script waits until the viewer has loaded everything, moves the time cursor to ``--frame`` (default:
 the middle of the ``frame`` timeline) through the viewer's control API (``window._handle.viewer_control``,
