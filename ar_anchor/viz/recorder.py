@@ -221,6 +221,10 @@ class RerunRecorder:
         for name in [name for name in self._drawn if name not in result.targets]:
             for entity in sorted(self._drawn.pop(name)):
                 self.recording.clear(entity, recursive=True)
+                if entity == f"world/targets/{entity_name(name)}":
+                    # a cleared TransformAxes3D is drawn at the viewer's default length, from the world origin
+                    # (long lines across the AR overlay): zero-length axes draw nothing until it comes back
+                    self.recording.log(f"{entity}/axes", rr.TransformAxes3D(axis_length=0.0))
             if name != self.anchor:
                 self._shapes_logged.discard(name)  # drawn again when it comes back
 

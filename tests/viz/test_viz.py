@@ -198,6 +198,14 @@ def test_a_gone_target_is_cleared_once_and_drawn_again_when_it_comes_back(tmp_pa
     # marker:2 is cleared on the frame it is gone, not again while it stays gone; the anchor (marker:1)
     # when it goes too, but its shape is the world frame and stays
     assert spy.cleared == {1: marker_2, 4: marker_2, 5: marker_1}
+    # a cleared target's axes are logged at zero length (the viewer would draw cleared axes at its default
+    # length from the world origin), and at their own length again when it comes back
+    lengths = [
+        (frame, data.axis_length.as_arrow_array().to_pylist())
+        for frame, data in spy.logged["world/targets/marker_2/axes"]
+    ]
+    assert [frame for frame, _ in lengths] == [0, 1, 3, 4]
+    assert [length for _, (length,) in lengths] == pytest.approx([0.75 * 0.05, 0.0, 0.75 * 0.05, 0.0])
     # its shape is logged again when it comes back; the anchor's once
     assert spy.shapes == {0: ["world/outline", "world/targets/marker_2/outline"], 3: ["world/targets/marker_2/outline"]}
     # every target's hypotheses are one entity, logged whole each frame: a gone target's are not in it (one
