@@ -112,6 +112,12 @@ class DetectorConfig:
         in_range(1, 10_000),
     )
     roi_margin: float = key(0.6, "region margin around a marker, in marker sides", in_range(0.1, 10.0))
+    fast_search: bool = key(
+        False,
+        "ROI tracking's whole-frame searches with OpenCV's one-threshold Aruco3 search while every marker is at "
+        "least 40 px (several times cheaper with many markers; it also outlines some smeared markers the "
+        "default search rejects, which the flip filter is not tuned for: see docs/architecture.md)",
+    )
 
 
 @dataclass(frozen=True)

@@ -143,7 +143,9 @@ class Tracker:
             return next(s.outline for s in self.board_solvers if s.name == target.name)
         return marker_corners_in_marker(self.config.marker_length(target.marker_id))[None]
 
-    def _detect(self, image: np.ndarray, camera: CameraModel, timestamp_ns: int) -> MarkerDetections:
+    def _detect(
+        self, image: np.ndarray, camera: CameraModel, timestamp_ns: int, blurred: bool = False
+    ) -> MarkerDetections:
         """Full-frame detection, or ROI tracking between full-frame searches (``[detector] roi``).
 
         Regions are searched only while every marker seen in the last ``[filter] memory_s`` was seen in
@@ -152,7 +154,8 @@ class Tracker:
         marker lost to one blurred frame is looked for everywhere until it is back or forgotten), and
         again in the same frame whenever a region search misses a marker the previous frame had. So ROI
         tracking never finds fewer of the known markers than full-frame detection; a marker never seen
-        before is found within ``roi_full_every`` frames.
+        before is found within ``roi_full_every`` frames. ``blurred``: the frame is motion-blurred (see
+        :meth:`_blurred`), so it is not given the fast whole-frame search.
         """
         settings = self.config.detector
         size = (image.shape[1], image.shape[0])
@@ -171,13 +174,13 @@ class Tracker:
             moving = {i: c for i, c in self._before_corners.items() if i in self._last_corners}
             regions = plan_regions(self._last_corners, moving, size, settings.roi_margin, cells=self.detector.cells)
             area = sum((r.x1 - r.x0) * (r.y1 - r.y0) for r in regions)
-            if area <= _MOST_OF_THE_FRAME * size[0] * size[1] or not self._fast_allowed(size):
+            if area <= _MOST_OF_THE_FRAME * size[0] * size[1] or not self._fast_allowed(size, blurred):
                 detections = self.detector.detect_regions(image, regions, camera)
                 if not set(self._last_corners) <= set(detections.ids.tolist()):
                     detections = None  # a marker was missed: search everywhere
             # (else regions as large as most of the frame: the fast whole-frame search costs less)
         if detections is None:
-            detections = self._search_whole_frame(image, camera, size)
+            detections = self._search_whole_frame(image, camera, size, blurred)
             self._frames_since_full = 0
         else:
             self._frames_since_full += 1
@@ -190,18 +193,22 @@ class Tracker:
                 self._seen[marker_id] = (corners, timestamp_ns)
         return detections
 
-    def _search_whole_frame(self, image: np.ndarray, camera: CameraModel, size: tuple[int, int]) -> MarkerDetections:
+    def _search_whole_frame(
+        self, image: np.ndarray, camera: CameraModel, size: tuple[int, int], blurred: bool
+    ) -> MarkerDetections:
         """A full-frame search: the fast one (:meth:`Detector.detect` ``fast``: big markers only) while ROI
         tracking may use it, else the thorough one, which finds markers of any size.
 
         Fast only while every marker seen in the last ``memory_s`` was at least ``FAST_MIN_SIDE_PX`` on its
-        last sighting, on a frame of the same size, and never for ``roi_full_every`` frames in a row. A
+        last sighting, on a frame of the same size that is not motion-blurred (one threshold can outline a
+        smeared marker, corners many pixels off, that the thorough search rejects), and never for
+        ``roi_full_every`` frames in a row. A
         marker the previous frame had that the fast search misses is looked for again, thoroughly, in its
         region (as ROI tracking does). So no marker the previous frame had is lost, and a marker never seen
         before (or a small one coming back) is found within ``roi_full_every`` frames.
         """
         settings = self.config.detector
-        if not self._fast_allowed(size):
+        if not self._fast_allowed(size, blurred):
             self._frames_since_thorough = 0
             return self.detector.detect(image, camera)
         self._frames_since_thorough += 1
@@ -223,11 +230,13 @@ class Tracker:
             np.concatenate([detections.ids, again.ids[new]]), np.concatenate([detections.corners, again.corners[new]])
         )
 
-    def _fast_allowed(self, size: tuple[int, int]) -> bool:
+    def _fast_allowed(self, size: tuple[int, int], blurred: bool) -> bool:
         """May the next whole-frame search be the fast one (see :meth:`_search_whole_frame`)?"""
         settings = self.config.detector
         return (
             settings.roi
+            and settings.fast_search
+            and not blurred
             and size == self._last_size
             and bool(self._seen)
             and self._frames_since_thorough + 1 < settings.roi_full_every
@@ -304,7 +313,7 @@ class Tracker:
     def _process(self, frame: Frame, blurred: bool = False, repeat_candidate: bool = False) -> FrameResult:
         camera = self.camera_for(frame.size)
         t0 = time.perf_counter()
-        detections = self._detect(frame.image, camera, frame.timestamp_ns)
+        detections = self._detect(frame.image, camera, frame.timestamp_ns, blurred)
         if repeat_candidate and self._previous is not None and _same_corners(detections, self._previous.detections):
             return self._repeat(frame, (time.perf_counter() - t0) * 1e3)
         if self.config.pose.recover_markers:

@@ -238,7 +238,7 @@ def test_full_frame_searches_for_big_markers_are_fast_and_find_what_a_thorough_s
     camera, frames = _vanishing_marker_frames(0.05)
     found = {}
     for roi in (False, True):
-        tracker = Tracker(tracker_config(roi, ids=(0, 1), roi_full_every=6), camera)
+        tracker = Tracker(tracker_config(roi, ids=(0, 1), roi_full_every=6, fast_search=True), camera)
         calls = _counting_searches(tracker)
         found[roi] = [sorted(tracker.process(frame).detections.ids.tolist()) for frame in frames]
         if roi:
@@ -254,7 +254,7 @@ def test_full_frame_searches_for_big_markers_are_fast_and_find_what_a_thorough_s
 def test_small_markers_are_always_searched_thoroughly():
     # given 33 px markers (Aruco3's one-threshold search finds none below 32-40 px)
     camera, frames = _vanishing_marker_frames(0.02)
-    tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=6), camera)
+    tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=6, fast_search=True), camera)
     calls = _counting_searches(tracker)
     found = [sorted(tracker.process(frame).detections.ids.tolist()) for frame in frames]
     # then no whole-frame search is the fast one, and both markers are found while there
@@ -264,7 +264,7 @@ def test_small_markers_are_always_searched_thoroughly():
 
 def test_a_marker_the_fast_search_misses_is_looked_for_in_its_region():
     camera, frames = _vanishing_marker_frames(0.05)
-    tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=6), camera)
+    tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=6, fast_search=True), camera)
     original = tracker.detector.detect
     blind = {"on": False}
 
@@ -297,7 +297,7 @@ def test_regions_covering_most_of_the_frame_give_way_to_the_fast_whole_frame_sea
         camera=camera, markers=markers, trajectory=Trajectory(kind="static", near_m=0.5), frames=8, noise_sigma=1.0
     )
     frames = list(SyntheticSource(scene))
-    tracker = Tracker(tracker_config(True, ids=(0, 1, 2), roi_full_every=15), camera)
+    tracker = Tracker(tracker_config(True, ids=(0, 1, 2), roi_full_every=15, fast_search=True), camera)
     calls = _counting_searches(tracker)
     regions = {"calls": 0}
     original = tracker.detector.detect_regions
@@ -311,3 +311,14 @@ def test_regions_covering_most_of_the_frame_give_way_to_the_fast_whole_frame_sea
     # then after the first (thorough) search every frame is searched whole, fast, and no region is searched
     assert found == [[0, 1, 2]] * len(frames)
     assert calls == {"fast": len(frames) - 1, "thorough": 1} and regions["calls"] == 0, (calls, regions)
+
+
+def test_the_fast_search_is_off_by_default():
+    # given big markers, one of which vanishes (every later frame searches the whole frame), default settings
+    camera, frames = _vanishing_marker_frames(0.05)
+    tracker = Tracker(tracker_config(True, ids=(0, 1)), camera)
+    calls = _counting_searches(tracker)
+    for frame in frames:
+        tracker.process(frame)
+    # then every whole-frame search is the thorough one
+    assert calls["fast"] == 0 and calls["thorough"] >= len(frames) - 4, calls
