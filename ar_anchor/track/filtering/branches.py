@@ -14,7 +14,7 @@ from ...camera import CameraModel
 from ...config import FilterConfig
 from ...geometry import Pose, angle_between_deg, vector_norm
 from ..pose import BoardPose, MarkerPose, PoseHypothesis
-from .linear import LinearKF, predict_linear, run_alone, update_linear
+from .linear import LinearKF, predict_linear, update_linear
 from .noise import CornerNoise
 from .smoothing import KalmanBatch, RotationFilter, TranslationFilter, so3_exp
 
@@ -180,20 +180,6 @@ class BranchPair:
         cov_rot, _ = self.noise.covariance(pose, camera)
         return math.sqrt(float(np.max(np.linalg.eigvalsh(cov_rot))))
 
-    def associate(
-        self,
-        measurement: MarkerPose | BoardPose,
-        camera: CameraModel,
-        gap_s: float,
-        restart: bool,
-        separation_deg: float,
-    ) -> list[PoseHypothesis | None]:
-        """Assign this frame's solutions (``separation_deg`` apart) to the branches: branch 0 is the one
-        whose tilt continues the tilt tracker's prediction (see :class:`_TiltTracker`); after a long gap,
-        the one nearer branch 0's last tilt (the tracker restarts at rest). A branch whose solution shows
-        up for the first time starts. Sets :attr:`unclear`, :attr:`doubtful` and :attr:`apart`."""
-        return run_alone(self.associate_steps(measurement, camera, gap_s, restart, separation_deg))
-
     def associate_steps(
         self,
         measurement: MarkerPose | BoardPose,
@@ -203,8 +189,14 @@ class BranchPair:
         separation_deg: float,
         batch: KalmanBatch | None = None,
     ) -> Generator[None, None, list[PoseHypothesis | None]]:
-        """:meth:`associate` in steps: it pauses (yields) after queueing the tilt tracker's prediction in
-        ``batch`` (None: taken at once), which the choice of branches needs."""
+        """Assign this frame's solutions (``separation_deg`` apart) to the branches: branch 0 is the one
+        whose tilt continues the tilt tracker's prediction (see :class:`_TiltTracker`); after a long gap,
+        the one nearer branch 0's last tilt (the tracker restarts at rest). A branch whose solution shows
+        up for the first time starts. Sets :attr:`unclear`, :attr:`doubtful` and :attr:`apart`; returns
+        the assignment.
+
+        In steps (:func:`~.linear.run_alone` runs it on its own): it pauses (yields) after queueing the tilt
+        tracker's prediction in ``batch`` (None: taken at once), which the choice of branches needs."""
         hypotheses = measurement.hypotheses
         first = hypotheses[0]
         sigma = self._tilt_sigma(first.pose, camera)
@@ -241,17 +233,6 @@ class BranchPair:
         swapped = angle_between_deg(predicted[0], rotations[1]) + angle_between_deg(predicted[1], rotations[0])
         return swapped + self.config.flip_angle_deg < straight
 
-    def update(
-        self,
-        assigned: list[PoseHypothesis | None],
-        measurement: MarkerPose | BoardPose,
-        camera: CameraModel,
-        gap_s: float,
-        restart: bool,
-    ) -> None:
-        """The smoothers take this frame's measurements (``restart``: after a gap, from them)."""
-        run_alone(self.update_steps(assigned, measurement, camera, gap_s, restart))
-
     def update_steps(
         self,
         assigned: list[PoseHypothesis | None],
@@ -261,9 +242,10 @@ class BranchPair:
         restart: bool,
         batch: KalmanBatch | None = None,
     ) -> Generator[None, None, None]:
-        """:meth:`update` in steps, its Kalman steps queued in ``batch`` (None: taken at once): it pauses
-        (yields) after queueing the predictions and after queueing the updates, for the caller to take
-        the batch's steps (:meth:`KalmanBatch.run`) with other tracks' before going on.
+        """The smoothers take this frame's measurements (``restart``: after a gap, from them), in steps: their
+        Kalman steps are queued in ``batch`` (None: taken at once), and it pauses (yields) after queueing the
+        predictions and after queueing the updates, for the caller to take the batch's steps
+        (:meth:`KalmanBatch.run`) with other tracks' before going on.
 
         Each branch's smoother takes its measurement. A measurement is never rejected: a smoother that
         finds it implausibly far (``reset_angle_deg``), or that has not seen its branch for longer than

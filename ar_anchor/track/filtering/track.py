@@ -7,6 +7,7 @@ import collections
 import math
 from collections.abc import Generator, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -71,27 +72,11 @@ class TargetTrack:
 
     # ------------------------------------------------------------------ per frame
     def update(
-        self,
-        measurement: MarkerPose | BoardPose | None,
-        timestamp_ns: int,
-        camera: CameraModel,
-        *,
-        blurred: bool = False,
-        unit_covariances: Mapping[int, tuple[Pose, np.ndarray]] | None = None,
+        self, measurement: MarkerPose | BoardPose | None, timestamp_ns: int, camera: CameraModel, **options: Any
     ) -> TrackUpdate | None:
-        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen). ``blurred``: the
-        whole frame is much less sharp than usual (the camera moved fast): a measurement in it is not
-        vouched for, and a target lost in it is not predicted (its motion is unknown).
-
-        ``unit_covariances``: this frame's solutions' covariances at one pixel of noise, batched over all
-        targets by the caller (:func:`~.noise.unit_covariances_of`); computed here for any pose not in it.
-
-        Returns None when there is nothing to publish: no track, a gap too long to predict through
-        (the track stays :attr:`alive`, keeping its flip memory, until ``memory_s``), or a reset.
-        """
-        return run_alone(
-            self.update_steps(measurement, timestamp_ns, camera, blurred=blurred, unit_covariances=unit_covariances)
-        )
+        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen): :meth:`update_steps`
+        (``options``: its ``blurred`` and ``unit_covariances``) run on its own."""
+        return run_alone(self.update_steps(measurement, timestamp_ns, camera, **options))
 
     def update_steps(
         self,
@@ -103,10 +88,20 @@ class TargetTrack:
         unit_covariances: Mapping[int, tuple[Pose, np.ndarray]] | None = None,
         batch: KalmanBatch | None = None,
     ) -> Generator[None, None, TrackUpdate | None]:
-        """:meth:`update` in steps, for a caller that takes the Kalman steps of all its tracks at once: the
-        smoothers' steps are queued in ``batch``, and the generator pauses (yields) after queueing the
-        predictions and after queueing the updates, for the caller to :meth:`~.smoothing.KalmanBatch.run`
-        them; its return value is :meth:`update`'s."""
+        """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen). ``blurred``: the
+        whole frame is much less sharp than usual (the camera moved fast): a measurement in it is not
+        vouched for, and a target lost in it is not predicted (its motion is unknown).
+        ``unit_covariances``: this frame's solutions' covariances at one pixel of noise, batched over all
+        targets by the caller (:func:`~.noise.unit_covariances_of`); computed here for any pose not in it.
+
+        In steps, for a caller that takes the Kalman steps of all its tracks at once: the smoothers' and the
+        tilt tracker's steps are queued in ``batch`` (None: taken at once), and the generator pauses (yields)
+        after queueing each kind, for the caller to :meth:`~.smoothing.KalmanBatch.run` them.
+
+        Returns (as the generator's value) None when there is nothing to publish: no track, a gap too long
+        to predict through (the track stays :attr:`alive`, keeping its flip memory, until ``memory_s``), or
+        a reset.
+        """
         timestamp_ns = self._tick(timestamp_ns)
         events: list[TrackEvent] = []
         self.noise.new_frame(unit_covariances)
