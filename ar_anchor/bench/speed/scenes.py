@@ -90,17 +90,7 @@ def speed_scene(kind: str, camera: CameraModel, frames: int, seed: int = 0) -> S
         roll_deg=10.0,
         cycles=seconds * PEAK_DEG_PER_S / (2 * math.pi * azimuth),
     )
-    return SyntheticScene(
-        camera=camera,
-        markers=markers,
-        boards=boards,
-        trajectory=trajectory,
-        frames=frames,
-        fps=FPS,
-        seed=seed,
-        noise_sigma=NOISE,
-        blur_sigma=BLUR,
-    )
+    return _scene(camera, markers, trajectory, frames, seed, boards)
 
 
 def fifty_markers_scene(camera: CameraModel, frames: int, seed: int = 0) -> SyntheticScene:
@@ -133,9 +123,15 @@ def fifty_markers_scene(camera: CameraModel, frames: int, seed: int = 0) -> Synt
         seed=seed,
         duration_s=frames / FPS,
     )
+    return _scene(camera, tuple(markers), trajectory, frames, seed)
+
+
+def _scene(camera: CameraModel, markers, trajectory: Trajectory, frames: int, seed: int, boards=()) -> SyntheticScene:
+    """A speed clip's scene: the clips' frame rate, sensor noise and blur."""
     return SyntheticScene(
         camera=camera,
-        markers=tuple(markers),
+        markers=markers,
+        boards=boards,
         trajectory=trajectory,
         frames=frames,
         fps=FPS,
