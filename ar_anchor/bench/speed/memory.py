@@ -12,10 +12,7 @@ import tracemalloc
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from ...camera import CameraModel
-from ...config import TrackerConfig
 from ...sources.base import Frame
-from ...track.tracker import Tracker
 
 __all__ = [
     "loop_peak_mb",
@@ -23,7 +20,6 @@ __all__ = [
     "release_freed_memory",
     "reset_peak_rss",
     "rss_now_mb",
-    "tracemalloc_peak_mb",
 ]
 
 
@@ -62,20 +58,6 @@ def reset_peak_rss() -> bool:
     except OSError:
         return False
     return True
-
-
-def tracemalloc_peak_mb(frames: Sequence[Frame], config: TrackerConfig, camera: CameraModel) -> float:
-    """Peak of Python-side allocations (numpy arrays included, OpenCV's own buffers not) of a fresh tracker."""
-    gc.collect()
-    tracemalloc.start()
-    try:
-        tracker = Tracker(config, camera)
-        for frame in frames:
-            tracker.process(frame)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    return peak / 1e6
 
 
 def loop_peak_mb(make: Callable[[], Any], frames: Sequence[Frame]) -> float:
