@@ -13,6 +13,7 @@ PROJECTED = (  # the "AR overlay" view's contents: the camera's image, and the 3
     "+ /world/**",
     "- /world/camera_trajectory",
     "- /world/hypotheses",
+    "- /world/labels",
     "- /world/truth_camera",
 )
 
@@ -22,9 +23,10 @@ def run_blueprint(*, overlay_image: bool = False) -> rrb.Blueprint:
 
     The camera views' origin is the camera's pinhole (``world/camera``), the image its child. "AR overlay"
     also holds the 3D world, which the viewer projects through the pinhole onto the frame: the targets'
-    overlay meshes, marker squares and axes (not the camera's own trajectory, the filter's hypotheses or
-    the true camera). "Camera" is the frame and its 2D detections alone; "Overlay image" (``overlay_image``:
-    ``[recording] overlay_images``) the annotated image the run drew itself. The 3D eye starts in front of
+    overlay meshes, marker squares and axes (not the camera's own trajectory, the filter's hypotheses, the
+    3D labels, which the 2D outlines' ids repeat, or the true camera). "Camera" is the frame and its 2D
+    detections alone; "Overlay image" (``overlay_image``: ``[recording] overlay_images``) the annotated
+    image the run drew itself. The 3D eye starts in front of
     the anchor (a marker frame: y up, z toward the viewer), a decimetre grid gives scale; the ambiguity plot
     shows 1..5 (values near 1 are the ambiguous ones; the data itself is not clipped).
     """

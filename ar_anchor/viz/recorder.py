@@ -3,14 +3,15 @@
 Entity tree
 -----------
 ``world``                         the anchor target's frame (the first target that gets a pose): its marker
-                                  squares (``outline``), ``axes``, ``label`` and ``overlay/<n>`` meshes
+                                  squares (``outline``), ``axes`` and ``overlay/<n>`` meshes
 ``world/camera``                  ``world_from_camera`` (so the camera centre is ``C = -R^T t``) + ``Pinhole``
 ``world/camera/image``            the frame (JPEG or a reference into the source video), with ``markers``
                                   outlines + ids, ``corners`` and ``boards/<board>/inliers|outliers`` (the
                                   corners a board's pose used / rejected), all in the frame's own pixels
 ``world/camera_trajectory``       the camera centre's recent path
 ``world/targets/<target>``        ``world_from_target`` of every other target, drawn as its marker squares,
-                                  axes, label and ``overlay/<n>`` meshes
+                                  axes and ``overlay/<n>`` meshes
+``world/labels``                  every target's name at its centre (the 3D view's; not in the AR overlay)
 ``world/hypotheses``              this frame's solution on each filter branch of every target, faint
 ``world/truth_camera``            the true camera centre (synthetic sources)
 ``camera/overlay``                the annotated image, only with ``[recording] overlay_images``
@@ -124,6 +125,7 @@ class RerunRecorder:
         self._video_asset: rr.AssetVideo | None = None
         self._states: dict[TargetId, TrackState] = {}
         self._trajectory: list[np.ndarray] = []
+        self._labelled = False  # world/labels holds something (cleared when no target is left)
         self._world_from_camera: Pose | None = None  # the camera where the anchor last placed it
         self._hypotheses_drawn = False
         self._distortion_note = _distortion_note(camera)  # logged in each part's first frame
@@ -203,7 +205,6 @@ class RerunRecorder:
             static=is_anchor,
         )
         log_(f"{path}/axes", rr.TransformAxes3D(axis_length=length_m * 0.75), static=is_anchor)
-        log_(f"{path}/label", rr.Points3D([[0, 0, 0]], labels=[name], radii=[length_m / 40]), static=is_anchor)
         if self.overlay_models is not None:
             if name not in self._meshes:  # built once per target: it comes back with the same models
                 self._meshes[name] = [mesh3d(placed.model) for placed in self.overlay_models(target)]
@@ -378,8 +379,10 @@ class RerunRecorder:
         world_from_camera = self._world_from_camera
         if world_from_camera is None:
             return
+        labels: list[tuple[str, np.ndarray, float]] = []  # every target's name at its centre, in the world
         for name, target in result.targets.items():
             if name == self.anchor:
+                labels.append((name, np.zeros(3), target.length_m))
                 continue
             if name not in self._shapes_logged:
                 self._log_shape(name, target, is_anchor=False)
@@ -388,7 +391,28 @@ class RerunRecorder:
                 self._own(name, f"world/targets/{entity_name(name)}"),
                 rr.Transform3D(translation=world_from_target.tvec, mat3x3=world_from_target.rotation),
             )
+            labels.append((name, world_from_target.tvec, target.length_m))
+        self._log_labels(labels)
         self._log_hypotheses(result, world_from_camera)
+
+    def _log_labels(self, labels: list[tuple[str, np.ndarray, float]]) -> None:
+        """Every target's name at its centre, one ``Points3D`` for all (``world/labels``, logged whole each
+        frame): the 3D view's labels, left out of the AR overlay view, where the frame's 2D outlines carry
+        the ids already."""
+        if not labels:
+            if self._labelled:
+                self.recording.clear("world/labels")
+                self._labelled = False
+            return
+        self.recording.log(
+            "world/labels",
+            rr.Points3D(
+                np.array([position for _, position, _ in labels]),
+                labels=[name for name, _, _ in labels],
+                radii=np.array([length / 40 for _, _, length in labels]),
+            ),
+        )
+        self._labelled = True
 
     def _log_camera(self, world_from_camera: Pose, length_m: float) -> None:
         """``world/camera``'s pose (its translation is the camera centre C = -R^T t) and its trajectory."""

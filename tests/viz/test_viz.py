@@ -212,7 +212,16 @@ def test_a_gone_target_is_cleared_once_and_drawn_again_when_it_comes_back(tmp_pa
     # branch each: its square and its normal), and with no target left it is cleared
     strips = {frame: len(data.strips.as_arrow_array()) for frame, data in spy.logged["world/hypotheses"]}
     assert strips == {0: 4, 1: 2, 2: 2, 3: 4, 4: 2}
-    assert spy.cleared_flat == {5: ["world/hypotheses"]}
+    assert spy.cleared_flat == {5: ["world/labels", "world/hypotheses"]}
+    # every target's 3D label is in one entity, logged whole each frame with the targets of that frame
+    labels = {frame: data.labels.as_arrow_array().to_pylist() for frame, data in spy.logged["world/labels"]}
+    assert labels == {
+        0: ["marker:1", "marker:2"],
+        1: ["marker:1"],
+        2: ["marker:1"],
+        3: ["marker:1", "marker:2"],
+        4: ["marker:1"],
+    }
     # and the file read back holds the clears
     chunks = rrd_chunks(path)
     for entity in marker_2 + marker_1:
