@@ -202,10 +202,11 @@ class Tracker:
         Fast only while every marker seen in the last ``memory_s`` was at least ``FAST_MIN_SIDE_PX`` on its
         last sighting, on a frame of the same size that is not motion-blurred (one threshold can outline a
         smeared marker, corners many pixels off, that the thorough search rejects), and never for
-        ``roi_full_every`` frames in a row. A
-        marker the previous frame had that the fast search misses is looked for again, thoroughly, in its
-        region (as ROI tracking does). So no marker the previous frame had is lost, and a marker never seen
-        before (or a small one coming back) is found within ``roi_full_every`` frames.
+        ``roi_full_every`` frames in a row (``[detector] fast_search``, off by default: see
+        docs/architecture.md). A marker the previous frame had that the fast search misses is looked for
+        again, thoroughly, in its region (as ROI tracking does). So no marker the previous frame had is
+        lost, and a marker never seen before (or a small one coming back) is found within
+        ``roi_full_every`` frames.
         """
         settings = self.config.detector
         if not self._fast_allowed(size, blurred):
