@@ -436,3 +436,10 @@ def test_tracks_updated_in_steps_with_one_kalman_batch_give_the_same_results_as_
                 assert update.state == other.state and update.events == other.events, (k, index)
                 np.testing.assert_allclose(other.pose.rvec, update.pose.rvec, rtol=0, atol=1e-12)
                 np.testing.assert_allclose(other.pose.tvec, update.pose.tvec, rtol=0, atol=1e-12)
+
+
+def test_a_batch_given_to_update_is_refused_its_steps_would_never_be_taken(camera):
+    track = TargetTrack(FilterConfig(), marker_corners_in_marker(0.05))
+    truth = Pose.from_matrix(np.diag([1.0, -1.0, -1.0]), [0, 0, 1.0])
+    with pytest.raises(ValueError, match="update_steps"):
+        track.update(hypotheses_for(truth, flipped(truth), camera, 0.1, 0.4), 0, camera, batch=KalmanBatch())

@@ -75,7 +75,9 @@ class TargetTrack:
         self, measurement: MarkerPose | BoardPose | None, timestamp_ns: int, camera: CameraModel, **options: Any
     ) -> TrackUpdate | None:
         """Advance to ``timestamp_ns`` with this frame's measurement (None: not seen): :meth:`update_steps`
-        (``options``: its ``blurred`` and ``unit_covariances``) run on its own."""
+        (``options``: its ``blurred`` and ``unit_covariances``) run on its own, its Kalman steps taken at once."""
+        if options.get("batch") is not None:
+            raise ValueError("TargetTrack.update takes its Kalman steps itself: give a batch to update_steps")
         return run_alone(self.update_steps(measurement, timestamp_ns, camera, **options))
 
     def update_steps(
