@@ -93,11 +93,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         real = real_inputs(args.video, args.camera, args.dictionary, args.marker_length, args.layout)
     clips = _checked_clips(args)  # exit 2 before anything is written
     prepare_out_dir(args.out)  # before minutes of work, not after
-    command = f"ar-anchor bench {args.name}" + (" --quick" if args.quick else "")
-    if args.clips is not None:
-        command += " --clips " + ",".join(args.clips)
-    if args.frames is not None:
-        command += f" --frames {args.frames}"
+    command = _command(args)
 
     def progress(i: int, total: int, name: str) -> None:
         if not args.quiet:
@@ -159,6 +155,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
         write_stability_report(args.out, quick=args.quick, config=config, progress=progress, command=command)
     print(f"results: {args.out / (args.name + '.md')} and {args.out / (args.name + '.json')}")
     return EXIT_OK
+
+
+def _command(args: argparse.Namespace) -> str:
+    """The command line the report quotes (the options that change what is measured)."""
+    command = f"ar-anchor bench {args.name}" + (" --quick" if args.quick else "")
+    if args.clips is not None:
+        command += " --clips " + ",".join(args.clips)
+    if args.frames is not None:
+        command += f" --frames {args.frames}"
+    return command
 
 
 def _profile(args: argparse.Namespace, real: Any, command: str) -> None:

@@ -78,14 +78,7 @@ def run_speed_benchmark(
     -> overlay -> log chain on the largest size's one-marker clip (else its first scene; none without
     scenes). ``memory_frames``: frames of each pipeline's tracemalloc pass on every clip (0: none).
     """
-    if frames < 1:
-        raise ValueError(f"frames must be >= 1, got {frames}")
-    for key in scenes:
-        if key not in SCENES:
-            raise ValueError(f"unknown speed scene {key!r} (one of {', '.join(SCENES)})")
-    for key in extra:
-        if key not in EXTRA_CLIPS:
-            raise ValueError(f"unknown speed clip {key!r} (one of {', '.join(EXTRA_CLIPS)})")
+    _check_choices(frames, scenes, extra)
     machine = machine_info()
     base = config or TrackerConfig()
     real: RealClip | str | None = None
@@ -143,6 +136,18 @@ def run_speed_benchmark(
         "end_to_end": e2e_result,
         "memory": memory,
     }
+
+
+def _check_choices(frames: int, scenes: Sequence[str], extra: Sequence[str]) -> None:
+    """:class:`ValueError` for a frame count below one or an unknown scene or clip name."""
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1, got {frames}")
+    for key in scenes:
+        if key not in SCENES:
+            raise ValueError(f"unknown speed scene {key!r} (one of {', '.join(SCENES)})")
+    for key in extra:
+        if key not in EXTRA_CLIPS:
+            raise ValueError(f"unknown speed clip {key!r} (one of {', '.join(EXTRA_CLIPS)})")
 
 
 class _Steps:
