@@ -25,6 +25,8 @@ from ar_anchor.errors import EXIT_INTERRUPTED, EXIT_USAGE
 from tests.helpers import cli, describe, run_main
 
 DEMO = ["-q", "demo", "--frames", "2", "--out", "out"]
+# long enough to be running still when the start-up signals arrive (a 2-frame demo can end within a second)
+SIGNALLED = ["-q", "demo", "--frames", "60", "--out", "out"]
 
 
 def _no_noise(result: subprocess.CompletedProcess[str]) -> None:
@@ -69,11 +71,12 @@ def test_the_interrupted_line_says_where_the_outputs_are():
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 @pytest.mark.parametrize("after_s", [0.15, 0.3, 0.45, 0.7, 1.0])
 def test_a_signal_during_start_up_is_one_line_and_exit_130(signum, after_s, tmp_path):
-    process = subprocess.Popen(cli(DEMO), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(cli(SIGNALLED), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(after_s)
+    assert process.poll() is None, "the run ended before the signal: it tests nothing"
     process.send_signal(signum)
     stdout, stderr = process.communicate(timeout=60)
-    result = subprocess.CompletedProcess(DEMO, process.returncode, stdout, stderr)
+    result = subprocess.CompletedProcess(SIGNALLED, process.returncode, stdout, stderr)
     _no_noise(result)
     assert "requires numpy" not in stderr, describe(result)
     if process.returncode == -signum:  # before the interpreter ran a line of ours: killed, silently
