@@ -55,8 +55,10 @@ def check_outputs(out: Path, video: Path | None = None) -> dict:
 
 
 def interrupt(args: list[str], cwd: Path, signum: int, after_s: float) -> subprocess.CompletedProcess[str]:
-    """Start ``ar-anchor ARGS``, send ``signum`` once its poses.csv exists plus ``after_s``."""
-    process = subprocess.Popen(cli(args), cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    """Start ``ar-anchor ARGS``, send ``signum`` once its poses.csv exists plus ``after_s``. A run that has not
+    ended 60 s later fails the test with every thread's stack (faulthandler, on SIGABRT), to show where it hangs."""
+    env = {**os.environ, "PYTHONFAULTHANDLER": "1"}
+    process = subprocess.Popen(cli(args), cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + 60
     out = cwd / "out"
     while not (out / "poses.csv").exists() and process.poll() is None and time.monotonic() < deadline:
@@ -64,7 +66,12 @@ def interrupt(args: list[str], cwd: Path, signum: int, after_s: float) -> subpro
     time.sleep(after_s)
     if process.poll() is None:
         process.send_signal(signum)
-    stdout, stderr = process.communicate(timeout=60)
+    try:
+        stdout, stderr = process.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        process.send_signal(signal.SIGABRT)
+        stdout, stderr = process.communicate(timeout=30)
+        raise AssertionError(f"the run hung after the signal; its threads:\n{stderr[-12000:]}") from None
     return subprocess.CompletedProcess(args, process.returncode, stdout, stderr)
 
 
