@@ -78,7 +78,7 @@ def run_session(
     try:
         abandon = lambda: _abandon(outputs, options, time.perf_counter() - start, summary_extras)  # noqa: E731
         with InterruptGuard(abandon, outputs.out_dir) as guard, _quick_gil_handover(info.live):
-            feed = _FrameFeed(source, info, options)
+            feed = _FrameFeed(source, info, options, guard)
             try:
                 outputs.open(tracker.camera, tracker.config.recording, info, renderer)
                 _track(feed, tracker, outputs, guard, options, progress, hints)
@@ -151,7 +151,7 @@ class _FrameFeed:
     """The frames to track, each with its decode time (ms): read ahead in a thread (files, synthetic
     renders), or, live, taken as the device hands them over (no read-ahead, no decode time)."""
 
-    def __init__(self, source: FrameSource, info: SourceInfo, options: RunOptions) -> None:
+    def __init__(self, source: FrameSource, info: SourceInfo, options: RunOptions, guard: InterruptGuard) -> None:
         self.total = info.frame_count
         if options.max_frames is not None:
             self.total = options.max_frames if self.total is None else min(self.total, options.max_frames)
@@ -162,7 +162,7 @@ class _FrameFeed:
         elif info.live:
             self._frames = ((frame, None) for frame in source)
         else:
-            self._prefetcher = Prefetcher(source, depth=options.decode_queue)
+            self._prefetcher = Prefetcher(source, depth=options.decode_queue, held=guard.critical)
             self._frames = self._prefetcher
 
     def __iter__(self) -> Iterator[tuple[Frame, float | None]]:

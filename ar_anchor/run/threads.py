@@ -21,6 +21,7 @@ on the same frame as ``poses.csv``, even after Ctrl-C.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import queue
@@ -47,7 +48,12 @@ class Prefetcher:
     source set it. An exception in the source is raised to the consumer after the frames before it.
     """
 
-    def __init__(self, source: Iterable[Frame], depth: int = 4) -> None:
+    def __init__(
+        self,
+        source: Iterable[Frame],
+        depth: int = 4,
+        held: Callable[[], contextlib.AbstractContextManager[object]] | None = None,
+    ) -> None:
         if depth < 1:
             raise ValueError("depth must be >= 1")
         self._source = source
@@ -55,6 +61,7 @@ class Prefetcher:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="decode", daemon=True)
         self._started = False
+        self._held = held  # signals held back while the queue is read (see _take)
 
     def _put(self, item: Any) -> bool:
         while not self._stop.is_set():
@@ -88,12 +95,24 @@ class Prefetcher:
             self._started = True
             self._thread.start()
         while True:
-            item = self._queue.get()
+            item = self._take()
             if item is _END:
                 return
             if isinstance(item, BaseException):
                 raise item
             yield item
+
+    def _take(self) -> Any:
+        """The next item, read in short polls each with signals held (``held()``, e.g. an
+        :class:`~.interrupts.InterruptGuard`'s ``critical``): a ``KeyboardInterrupt`` raised inside the
+        queue's lock would leave it locked, and the decoding thread and the closing would wait on it for
+        ever (seen once: a replay that never ended after its SIGTERM). A signal is raised between polls."""
+        while True:
+            with self._held() if self._held is not None else contextlib.nullcontext():
+                try:
+                    return self._queue.get(timeout=_POLL_S)
+                except queue.Empty:
+                    pass
 
     def close(self, timeout_s: float = 10.0) -> None:
         """Stop reading and wait for the thread (so the source can be closed safely afterwards)."""

@@ -209,3 +209,33 @@ def test_a_completed_run_reports_where_its_outputs_are(tmp_path):
     assert result.summary["status"] == "completed" and result.summary["frames"] == 3
     assert (result.out_dir, result.poses_csv, result.raw_video) == (tmp_path, tmp_path / "poses.csv", None)
     assert Path(result.summary_json).is_file() and Path(result.recording_rrd).is_file()
+
+
+def test_a_signal_raised_between_the_prefetchers_polls_leaves_its_queue_usable():
+    # given a prefetcher whose reads are held like an InterruptGuard's critical sections, and a signal
+    # that arrives while the third read waits (raised when that hold ends, outside the queue's lock)
+    import contextlib
+
+    from ar_anchor.run.threads import Prefetcher
+    from ar_anchor.sources.base import Frame
+
+    frames = [Frame(np.zeros((4, 4, 3), np.uint8), i, i) for i in range(50)]
+    holds = {"n": 0}
+
+    @contextlib.contextmanager
+    def held():
+        holds["n"] += 1
+        yield
+        if holds["n"] == 3:
+            raise KeyboardInterrupt("signal 15")
+
+    prefetcher = Prefetcher(frames, depth=2, held=held)
+    taken = []
+    with pytest.raises(KeyboardInterrupt):
+        for frame, _ in prefetcher:
+            taken.append(frame.index)
+    # then the frames before it were delivered, and the closing (which drains the queue) ends at once
+    assert taken == [0, 1]
+    started = time.monotonic()
+    prefetcher.close(timeout_s=5.0)
+    assert time.monotonic() - started < 2.0
