@@ -171,7 +171,7 @@ class Detector:
         params.perspectiveRemovePixelPerCell = 6
         self.parameters = params
         self._detector = cv2.aruco.ArucoDetector(self.dictionary, params)
-        self._fast_detector = cv2.aruco.ArucoDetector(self.dictionary, _fast_parameters(params))
+        self._fast_detector: cv2.aruco.ArucoDetector | None = None  # built on the first fast search
         self._region_detectors: dict[tuple[int, float], cv2.aruco.ArucoDetector] = {}
         self._warned_duplicates: set[int] = set()
         self.rejected: tuple[np.ndarray, ...] = ()  # the last image's rejected candidates
@@ -184,6 +184,8 @@ class Detector:
         several times cheaper where markers are big; it cannot find smaller markers.
         """
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        if fast and self._fast_detector is None:
+            self._fast_detector = cv2.aruco.ArucoDetector(self.dictionary, _fast_parameters(self.parameters))
         corners, ids, rejected = (self._fast_detector if fast else self._detector).detectMarkers(grey)
         self.rejected = rejected
         if ids is None or len(ids) == 0:

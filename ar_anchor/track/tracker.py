@@ -184,7 +184,8 @@ class Tracker:
             self._frames_since_full = 0
         else:
             self._frames_since_full += 1
-            self._frames_since_thorough += 1
+            if self.config.detector.fast_search:
+                self._frames_since_thorough += 1
         self._last_size = size
         self._before_corners = self._last_corners
         self._last_corners = {int(i): c for i, c in zip(detections.ids, detections.corners)}
