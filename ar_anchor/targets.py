@@ -44,6 +44,9 @@ class TargetId(str):
             raise ValueError(f"write marker:{int(name)}, not marker:{name}")
         return super().__new__(cls, f"{kind}:{name}")
 
+    def __reduce__(self) -> tuple[object, tuple[str]]:  # pickled as its text (results spooled to disk, processes)
+        return (TargetId.parse, (str(self),))
+
     @classmethod
     def marker(cls, marker_id: int) -> TargetId:
         return cls("marker", int(marker_id))
@@ -117,11 +120,14 @@ class TrackState(str, enum.Enum):
     - ``ambiguous``: measured, but the flip is not (yet) decided, or this frame is not trusted
       (blur, outlier, close call): the pose is the best available, not a promise.
     - ``predicted``: not measured this frame; a short, damped prediction through a gap.
+    - ``interpolated``: not measured this frame; offline replay only (:mod:`ar_anchor.track.offline`):
+      a gap bridged between the measured poses on either side of it.
     """
 
     TRACKED = "tracked"
     AMBIGUOUS = "ambiguous"
     PREDICTED = "predicted"
+    INTERPOLATED = "interpolated"
 
     __str__ = str.__str__
     __format__ = str.__format__
@@ -129,4 +135,4 @@ class TrackState(str, enum.Enum):
 
     @property
     def measured(self) -> bool:
-        return self is not TrackState.PREDICTED
+        return self is not TrackState.PREDICTED and self is not TrackState.INTERPOLATED

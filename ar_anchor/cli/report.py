@@ -94,14 +94,15 @@ def format_summary(summary: dict[str, Any]) -> str:
         + (f" ({summary['dictionary_hint']})" if summary.get("dictionary_hint") else ""),
     ]
     truth = summary.get("ground_truth")
-    header = f"{'target':<12} {'detected':>9} {'tracked/ambig/pred':>18}"
+    header = f"{'target':<12} {'detected':>9} {'tracked/ambig/gap':>18}"
     if truth:
         header += f" {'in view':>8} {'rate':>6} {'rot med/p95 deg':>17} {'trans med/p95 %':>17}"
     lines.append(header)
     lines.append("-" * len(header))
     for name, entry in summary["targets"].items():
         states = entry.get("states", {})
-        state_text = f"{states.get('tracked', 0)}/{states.get('ambiguous', 0)}/{states.get('predicted', 0)}"
+        gap = states.get("predicted", 0) + states.get("interpolated", 0)  # (replay: interpolated, live: predicted)
+        state_text = f"{states.get('tracked', 0)}/{states.get('ambiguous', 0)}/{gap}"
         row = f"{printable(name):<12} {entry['frames_measured']:>9} {state_text:>18}"
         if truth:
             rate = entry.get("detection_rate_in_view")

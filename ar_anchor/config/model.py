@@ -198,6 +198,16 @@ class FilterConfig:
     decisive_frames: int = key(
         2, "consecutive decisive frames against the output's solution that move it there", in_range(1, 1000)
     )
+    interpolate_s: float = key(
+        0.5,
+        'offline replay: bridge gaps at most this long between measurements (state "interpolated")',
+        in_range(0.0, 60.0),
+    )
+    interpolate_max_deg: float = key(
+        3.0,
+        "... and only where the motion is steady: end velocities within this of the one across it, over half the gap",
+        in_range(0.0, 180.0),
+    )
     predict_s: float = key(
         0.2, 'publish predictions through gaps at most this long (state "predicted") ...', in_range(0.0, 60.0)
     )

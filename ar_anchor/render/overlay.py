@@ -59,6 +59,7 @@ STATE_STYLE = {
     TrackState.TRACKED: (1.0, 1.0, ""),
     TrackState.AMBIGUOUS: (0.5, 1.0, "ambiguous"),
     TrackState.PREDICTED: (0.3, 0.25, "predicted"),
+    TrackState.INTERPOLATED: (0.6, 0.5, "interpolated"),
 }
 
 

@@ -37,6 +37,9 @@ class Trajectory:
         and elevation (the demo's path: near, well-conditioned views to far, ambiguous ones).
         ``orbit``: constant distance ``near_m``, azimuth swings ``±azimuth_deg``.
         ``static``: a fixed camera at ``near_m``, ``azimuth_deg``, ``elevation_deg``.
+        ``approach``: the camera comes from ``far_m`` to ``near_m`` (eased), viewing from about
+        ``azimuth_deg`` / ``elevation_deg`` with a small sway (a far marker's flip is undecidable, a
+        near one's is plain: the case where later frames settle earlier ones).
         ``handheld``: a hand-held webcam looking roughly at ``look_at``: the viewpoint sways
         (0.1-0.5 Hz, up to ``azimuth_deg`` / ``elevation_deg`` / ``roll_deg``, aim point wandering
         by ``aim_m``), the distance goes back and forth between ``near_m`` and ``far_m``, tremor
@@ -64,9 +67,9 @@ class Trajectory:
     duration_s: float = 10.0  # handheld: the time u = 1 maps to in camera_from_world(u)
 
     def __post_init__(self) -> None:
-        if self.kind not in ("sweep", "orbit", "static", "handheld"):
-            raise ValueError(f"trajectory kind must be sweep, orbit, static or handheld, got {self.kind!r}")
-        if not (0 < self.near_m and (self.kind not in ("sweep", "handheld") or self.near_m <= self.far_m)):
+        if self.kind not in ("sweep", "orbit", "static", "handheld", "approach"):
+            raise ValueError(f"trajectory kind must be sweep, orbit, static, handheld or approach, got {self.kind!r}")
+        if not (0 < self.near_m and (self.kind not in ("sweep", "handheld", "approach") or self.near_m <= self.far_m)):
             raise ValueError(f"trajectory distances must satisfy 0 < near <= far, got {self.near_m}, {self.far_m}")
         if self.kind == "handheld":
             if self.turn_peak_deg_s < 0 or self.turn_deg < 0 or self.tremor_deg < 0 or self.aim_m < 0:
@@ -101,6 +104,10 @@ class Trajectory:
         if self.kind == "static":
             return az0, el0, roll0, self.near_m
         phase = 2.0 * math.pi * self.cycles * u
+        if self.kind == "approach":
+            sway = math.radians(3.0)
+            dist = self.far_m - (self.far_m - self.near_m) * (0.5 - 0.5 * math.cos(math.pi * u))
+            return az0 + sway * math.sin(phase), el0 + sway * math.sin(0.73 * phase + 0.9), roll0, dist
         az = az0 * math.sin(phase)
         el = el0 * math.sin(0.73 * phase + 0.9)
         roll = roll0 * math.sin(0.41 * phase + 0.3)

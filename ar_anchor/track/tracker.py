@@ -42,7 +42,7 @@ class TargetResult:
     ----------
     pose : output ``camera_from_target`` (what is rendered).
     raw : this frame's plain per-frame solution before filtering (None when not measured).
-    state : ``tracked`` | ``ambiguous`` | ``predicted``.
+    state : ``tracked`` | ``ambiguous`` | ``predicted`` (| ``interpolated``, offline replay).
     reproj_px : RMS reprojection error of ``pose`` on this frame's corners (NaN when predicted).
     ambiguity : error ratio worse / better of the two IPPE solutions (NaN for boards or unknown).
     hypotheses : the validated per-frame solutions, lower error first.
@@ -66,6 +66,10 @@ class TargetResult:
     outlier_ids: tuple[int, ...] = ()  # boards: markers seen but rejected this frame
     inliers: int = 0  # corners (or ChArUco corners) the pose was solved from
     outlier_points_in_image: np.ndarray | None = None  # boards: rejected corners this frame
+    branch: int = -1  # the filter's output branch (index into branch_poses; -1: no filter)
+    run_frames: int = 0  # the filter's frames measured since its smoothers last (re)started
+    committed: bool = False  # the filter's evidence has committed to a solution (undecided otherwise)
+    doubts: tuple[str, ...] = ()  # a measured, not tracked frame: the filter's reasons (TargetTrack._doubts)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "target", TargetId.parse(self.target))
@@ -88,6 +92,11 @@ class FrameResult:
     latency_ms: dict[str, float] = field(default_factory=dict)
     camera: CameraModel | None = None
     repeated: bool = False  # the same pixels as the frame before: the previous answer, not a new measurement
+    blurred: bool = False  # the frame was motion-blurred (its measurements are not vouched for)
+    detail: float = math.nan  # the fine-scale contrast of the whole frame (Laplacian variance at 1/4 size)
+    # this frame's per-frame solutions, by target (both IPPE solutions): what the filter took in, kept for
+    # the offline pass (:mod:`ar_anchor.track.offline`) to run the filter again, backwards
+    measurements: dict[TargetId, MarkerPose | BoardPose] = field(default_factory=dict)
 
 
 class Tracker:
@@ -114,6 +123,7 @@ class Tracker:
         self._before_corners: dict[int, np.ndarray] = {}
         self._fingerprint: np.ndarray | None = None  # every 4th pixel of the last frame (repeats)
         self._sharpness: float | None = None  # typical variance of the fingerprint's Laplacian (blur)
+        self._detail = math.nan  # this frame's fine-scale contrast (see FrameResult.detail)
         self._previous: FrameResult | None = None
         self._seen: dict[int, tuple[np.ndarray, int]] = {}  # marker id -> (last corners, when)
         self._frames_since_full = 0
@@ -275,10 +285,11 @@ class Tracker:
         ``_BLUR_RATIO`` of its running typical value."""
         grey = cv2.cvtColor(fingerprint, cv2.COLOR_BGR2GRAY) if fingerprint.ndim == 3 else fingerprint
         grey = grey.astype(np.float32)
+        self._detail = float(cv2.Laplacian(grey, cv2.CV_32F).var())
         coarse = float(cv2.Laplacian(cv2.pyrDown(grey), cv2.CV_32F).var()) if min(grey.shape[:2]) >= 16 else 0.0
         if coarse <= 1e-6:
             return False
-        sharpness = float(cv2.Laplacian(grey, cv2.CV_32F).var()) / coarse
+        sharpness = self._detail / coarse
         typical = self._sharpness
         blurred = typical is not None and sharpness < self._BLUR_RATIO * typical
         if not blurred:
@@ -351,7 +362,18 @@ class Tracker:
             targets = {name: self._raw_result(name, measured[name], camera) for name in TargetId.ordered(measured)}
         t3 = time.perf_counter()
         latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
-        return FrameResult(frame.index, frame.timestamp_ns, detections, targets, tuple(failures), latency, camera)
+        return FrameResult(
+            frame.index,
+            frame.timestamp_ns,
+            detections,
+            targets,
+            tuple(failures),
+            latency,
+            camera,
+            blurred=blurred,
+            detail=self._detail,
+            measurements=measured,
+        )
 
     def _filter(
         self, measured: dict[TargetId, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
@@ -374,7 +396,7 @@ class Tracker:
             steps[name] = track.update_steps(
                 solved, timestamp_ns, camera, blurred=blurred, unit_covariances=unit, batch=batch
             )
-        updates = _run_in_step(steps, batch)
+        updates = run_filter_steps(steps, batch)
         for name in names:
             solved, track, update = measured.get(name), self.tracks[name], updates[name]
             for event in update.events if update is not None else ():
@@ -390,6 +412,10 @@ class Tracker:
                 solved,
                 camera,
                 branch_poses=update.hypotheses,
+                branch=update.branch,
+                run_frames=update.run_frames,
+                committed=update.committed,
+                doubts=update.doubts,
                 evidence_px=update.evidence,
                 events=tuple(update.events),
             )
@@ -476,7 +502,7 @@ def _every_4th_pixel(image: np.ndarray) -> np.ndarray:
     return cv2.resize(image, (width // 4, height // 4), interpolation=cv2.INTER_NEAREST)
 
 
-def _run_in_step(steps: dict[TargetId, Generator[None, None, Any]], batch: KalmanBatch) -> dict[TargetId, Any]:
+def run_filter_steps(steps: dict[TargetId, Generator[None, None, Any]], batch: KalmanBatch) -> dict[TargetId, Any]:
     """Advance every generator a step at a time, taking ``batch``'s queued steps after each round; their
     return values, by name."""
     results: dict[TargetId, Any] = {}

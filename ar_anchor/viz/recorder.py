@@ -80,6 +80,7 @@ _STATE_COLOURS = {
     TrackState.TRACKED: (40, 220, 80),
     TrackState.AMBIGUOUS: (250, 190, 30),
     TrackState.PREDICTED: (120, 120, 255),
+    TrackState.INTERPOLATED: (90, 200, 230),
 }
 _FAILED_COLOUR = (255, 60, 60)
 _BRANCH_COLOURS = np.array([(90, 200, 255, 90), (255, 140, 60, 90)], np.uint8)  # the filter's branch 0, 1

@@ -14,6 +14,7 @@ from ...geometry import Pose
 from ...sources.synthetic import SyntheticSource
 from ...targets import TargetId
 from ...track.detection import Detector
+from ...track.offline import smooth
 from ...track.tracker import Tracker
 from .metrics import is_decisive
 from .scenarios import Scenario
@@ -55,6 +56,7 @@ class ScenarioRun:
     track_ms: list[float] = field(default_factory=list)
     render_s: float = 0.0
     track_s: float = 0.0
+    offline: dict[str, TargetSeries] = field(default_factory=dict)  # the offline replay's (track.offline)
     full_frame_found: int = 0  # marker-frames of tracked ids a full-frame search finds on the same frames ...
     roi_missed: int = 0  # ... and how many of those the tracker (ROI tracking on) did not find
 
@@ -82,11 +84,12 @@ class ScenarioRun:
         return self._first().delta_px
 
 
-def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel) -> ScenarioRun:
+def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel, offline: bool = True) -> ScenarioRun:
     """Render and track a scenario with ``config`` (its filter on, tracking exactly the scene's markers).
 
     ``camera`` is the default camera (a scenario may ask for its own); the tracker gets the same
-    camera model as the renderer (with its distortion)."""
+    camera model as the renderer (with its distortion). ``offline``: also the offline replay's answer
+    (:func:`~ar_anchor.track.offline.smooth`) over the same frames, in :attr:`ScenarioRun.offline`."""
     camera = scenario.camera_model(camera)
     source = SyntheticSource(scenario.scene(camera, config.detector.dictionary))
     tracker = Tracker(scenario.tracker_config(config), camera)
@@ -94,6 +97,7 @@ def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel)
     names = [TargetId.marker(i) for i in scenario.marker_ids]
     run = ScenarioRun(scenario, {name: TargetSeries() for name in names})
     frames = iter(source)
+    results, truths = [], []
     while True:
         start = time.perf_counter()
         frame = next(frames, None)
@@ -108,9 +112,17 @@ def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel)
         truth = frame.truth or {}
         for name, series in run.targets.items():
             series.append(result.targets.get(name), truth.get(name))
+        results.append(result)
+        truths.append(truth)
         everywhere = {i for i in full_frame.detect(frame.image, camera).ids.tolist() if tracker.config.tracks_marker(i)}
         run.full_frame_found += len(everywhere)
         run.roi_missed += len(everywhere - set(result.detections.ids.tolist()))
+    if offline:
+        run.offline = {name: TargetSeries() for name in names}
+        for result, truth in zip(smooth(results, tracker.config), truths):
+            for name, series in run.offline.items():
+                series.append(result.targets.get(name), truth.get(name))
     # targets never in view have nothing to score
     run.targets = {name: s for name, s in run.targets.items() if any(t is not None for t in s.truth)} or run.targets
+    run.offline = {name: s for name, s in run.offline.items() if name in run.targets}
     return run

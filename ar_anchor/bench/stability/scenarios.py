@@ -82,7 +82,7 @@ class Scenario:
         return tuple(range(self.sheet)) if self.sheet else (0,)
 
     def trajectory(self) -> Trajectory:
-        """The camera path for ``motion`` (static, wobble, orbit, fast, sweep or handheld) at ``distance_m``."""
+        """The camera path for ``motion`` (static, wobble, orbit, fast, sweep, approach, handheld) at ``distance_m``."""
         seconds = self.frames / 30.0
         if self.motion == "static":
             return Trajectory(
@@ -111,6 +111,16 @@ class Scenario:
                 azimuth_deg=30.0,
                 elevation_deg=15.0,
                 roll_deg=10.0,
+                cycles=1.0,
+            )
+        if self.motion == "approach":
+            return Trajectory(
+                kind="approach",
+                near_m=self.distance_m,
+                far_m=self.far_m or self.distance_m * 6,
+                azimuth_deg=self.tilt_deg,
+                elevation_deg=0.5 * self.tilt_deg,
+                roll_deg=5.0,
                 cycles=1.0,
             )
         if self.motion == "handheld":

@@ -4,6 +4,7 @@ the pose to publish and its state (see the package doc)."""
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 from collections.abc import Generator, Mapping
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from .linear import run_alone
 from .noise import CornerNoise
 from .smoothing import KalmanBatch, so3_exp, so3_log
 
-__all__ = ["TargetTrack", "TrackUpdate"]
+__all__ = ["EVIDENCE_DOUBTS", "TargetTrack", "TrackUpdate"]
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,15 @@ class TrackUpdate:
     evidence: float  # confidence bound of the window's mean error difference, in px (+: branch 0)
     hypotheses: tuple[Pose | None, Pose | None]  # this frame's measurement on each branch
     events: tuple[TrackEvent, ...] = ()
+    run_frames: int = 0  # frames measured since the smoothers last (re)started (how much they have averaged)
+    doubts: tuple[str, ...] = ()  # a measured frame's reasons not to be tracked (TargetTrack._doubts)
+
+
+# Doubts about which solution is right (the evidence up to the frame, the frame's own lower-error pick), not
+# about the frame's pose itself: evidence from later frames (the offline replay) may settle them.
+EVIDENCE_DOUBTS = frozenset(
+    {"undecided", "decided_elsewhere", "evidence_against", "close_call", "unconfirmed", "raw_pick_elsewhere"}
+)
 
 
 class TargetTrack:
@@ -51,6 +61,7 @@ class TargetTrack:
         self._period_s: float | None = None  # the frame interval (the shortest recent one, smoothed)
         self.measured_ns: int | None = None  # the last frame measured
         self.frames = 0
+        self.run_frames = 0  # measured frames since the branches last (re)started
         self._separation_deg = math.inf  # this frame's angle between its two solutions
         self._held_spike = False  # the last frame's output jump was held back (see _spike)
         self._was_tracked = False  # the last measured frame's state was tracked
@@ -126,13 +137,17 @@ class TargetTrack:
             events.append(TrackEvent("spike", "orientation jump in place held for one frame"))
             assert self._output is not None
             pose = Pose.from_matrix(self._output.rotation, pose.tvec)
-        vouched = self._vouched(assigned, decided, covariance, spike, blurred) and not self._glide.any()
+        doubts = self._doubts(assigned, decided, covariance, spike, blurred)
+        if self._glide.any():
+            doubts.append("glide")
+        vouched = not doubts
         hypotheses = (
             assigned[0].pose if assigned[0] is not None else None,
             assigned[1].pose if assigned[1] is not None else None,
         )
         self._was_tracked = vouched
         update = self._result(TrackState.TRACKED if vouched else TrackState.AMBIGUOUS, pose, hypotheses, events)
+        update = dataclasses.replace(update, doubts=tuple(doubts))
         self._output = pose
         return update
 
@@ -170,8 +185,10 @@ class TargetTrack:
             else math.inf
         )
         if self.branches is None:
+            self.run_frames = 1
             return self._start(measurement, camera, events), True, None
         restart = self._is_gap(gap_s)
+        self.run_frames = 1 if restart else self.run_frames + 1
         if restart:
             events.append(TrackEvent("reacquired", f"seen again after {gap_s:.2f} s"))
             self.evidence.reacquired()
@@ -212,33 +229,36 @@ class TargetTrack:
         self.output_branch = target
         return True
 
-    def _vouched(
+    def _doubts(
         self,
         assigned: list[PoseHypothesis | None],
         decided: int | None,
         covariance: np.ndarray | None,
         spike: bool,
         blurred: bool,
-    ) -> bool:
-        """Is this measured frame's output ``tracked`` (see the package doc)?"""
+    ) -> list[str]:
+        """Why this measured frame's output is not ``tracked`` (see the package doc): the names of the
+        tests it fails, none when it is vouched for. (:data:`EVIDENCE_DOUBTS` are about which solution the
+        evidence up to this frame favours; the others about this frame's pose itself.)"""
         assert self.branches is not None
         evidence, output = self.evidence, self.output_branch
-        return (
-            not spike
-            and evidence.committed is not None
-            and evidence.committed == output
-            and assigned[output] is not None
-            and decided in (None, output)
-            and evidence.against == 0
-            and not self.branches.doubtful
-            and not (self.branches.unclear and decided is None)
-            and not evidence.close_call(assigned, self._separation_deg)
-            and not evidence.unconfirmed
-            and not self.noise.outlier
-            and not blurred
-            and raw_pick(assigned) in (None, output)
-            and not self._too_uncertain(covariance)
+        tests = (
+            ("spike", spike),
+            ("undecided", evidence.committed is None),
+            ("committed_elsewhere", evidence.committed is not None and evidence.committed != output),
+            ("not_measured_on_output", assigned[output] is None),
+            ("decided_elsewhere", decided not in (None, output)),
+            ("evidence_against", evidence.against != 0),
+            ("doubtful", self.branches.doubtful),
+            ("unclear", self.branches.unclear and decided is None),
+            ("close_call", evidence.close_call(assigned, self._separation_deg)),
+            ("unconfirmed", evidence.unconfirmed),
+            ("outlier", self.noise.outlier),
+            ("blurred", blurred),
+            ("raw_pick_elsewhere", raw_pick(assigned) not in (None, output)),
+            ("too_uncertain", self._too_uncertain(covariance)),
         )
+        return [name for name, failed in tests if failed]
 
     def _measured_output(
         self, assigned: list[PoseHypothesis | None], camera: CameraModel
@@ -387,6 +407,7 @@ class TargetTrack:
             self.evidence.bound(0.0, 0.0),
             hypotheses,
             tuple(events),
+            self.run_frames,
         )
 
 
