@@ -152,7 +152,10 @@ def test_the_grid_keeps_the_calm_scenarios_and_adds_handheld_ones():
     full, quick = stability_scenarios(), stability_scenarios(quick=True)
     calm = [s for s in full if s.motion != "handheld"]
     handheld = [s for s in full if s.motion == "handheld"]
-    assert len(calm) == 14 and calm[0].name == "static 12cm 0.5m tilt30" and calm[0].frames == 150
+    assert len(calm) == 15 and calm[0].name == "static 12cm 0.5m tilt30" and calm[0].frames == 150
+    approach = [s for s in calm if s.motion == "approach"]  # issue 20: ambiguous far, decisive near
+    assert [(s.far_m, s.distance_m, s.marker_m) for s in approach] == [(4.0, 0.5, 0.04)]
+    assert any(s.motion == "approach" and s.frames == 90 for s in quick)
     assert len(handheld) >= 8
     names = " ".join(s.name for s in handheld)
     for needle in ("h264", "720p", "5fps", "60fps", "dup12", "200deg/s", "occlusion", "far 4cm", "distortion"):
@@ -188,6 +191,9 @@ def test_a_tiny_handheld_scenario_end_to_end(tmp_path, monkeypatch):
     results = write_stability_report(tmp_path, quick=True, command="test bench stability")
     text = (tmp_path / "stability.md").read_text()
     assert "| pass |" in text and "tiny" in text and "longest stretch" in text
+    assert "## Offline replay vs causal (issue 20)" in text and "| interpolated % |" in text
     saved = json.loads((tmp_path / "stability.json").read_text())
     assert saved["meta"]["wall_time_s"] > 0 and len(results) == 1
+    assert saved["meta"]["offline_scenarios"] == 1 and "offline_acceptance" in saved["results"][0]
+    assert "interpolated_pct" in saved["results"][0]["offline"]
     assert saved["results"][0]["scenario"]["resolution"] == [320, 240]

@@ -1,5 +1,7 @@
-"""One tracked scenario scored: both pipelines' metrics per target and pooled over the targets, the
-worst target, the rigid sheet's consistency, and the acceptance (``ACCEPTANCE``)."""
+"""One tracked scenario scored: the raw pipeline's, the tracker's and the offline replay's metrics per
+target and pooled over the targets, the worst target, the rigid sheet's consistency, and the
+acceptances (``ACCEPTANCE``: the tracker against raw, issue 16; ``OFFLINE_ACCEPTANCE``: the offline
+replay against the causal tracker, issue 20)."""
 
 from __future__ import annotations
 
@@ -23,7 +25,10 @@ from .metrics import (
 from .run import ScenarioRun, TargetSeries
 from .scenarios import scenario_dict
 
-__all__ = ["ACCEPTANCE", "acceptance", "evaluate"]
+__all__ = ["ACCEPTANCE", "OFFLINE_ACCEPTANCE", "acceptance", "evaluate", "offline_acceptance"]
+
+CAUSAL_STATES = ("tracked", "ambiguous", "predicted")
+OFFLINE_STATES = ("tracked", "ambiguous", "predicted", "interpolated")
 
 # The acceptance of issue 16 (checked per target; a metric with no data passes).
 ACCEPTANCE = {
@@ -36,84 +41,105 @@ ACCEPTANCE = {
 }
 
 
-def _target_metrics(series: TargetSeries, moving: bool) -> dict[str, Any]:
-    """Both pipelines' metrics on one target."""
+def _output_metrics(series: TargetSeries, moving: bool, states: tuple[str, ...], signed_lag: bool = False) -> dict:
+    """A tracker's (causal or offline) metrics on one target: the error statistics, the stretches against
+    the decisive raw measurements, wrong tracked and predicted rows, ambiguous rows against raw, the share
+    and count of each of ``states``, and the frames from the first output to the first ``tracked`` one."""
+    out = series_metrics(series.output, series.truth, moving, signed_lag=signed_lag)
+    out["longest_stretch"] = longest_stretch(series.output, series.raw, series.decisive)
+    out["ignored_run"] = longest_stretch(series.output, series.raw, series.decisive, gaps_end=False)
+    out.update(wrong_tracked(series.output, series.truth, series.state))
+    out.update(predicted_error_stats(series.output, series.truth, series.state))
+    out.update(ambiguous_vs_raw(series.output, series.raw, series.truth, series.state))
+    out.update(_state_shares(series.state, states))
+    first_output = next((i for i, s in enumerate(series.state) if s), None)
+    first_tracked = next((i for i, s in enumerate(series.state) if s == "tracked"), None)
+    out["frames_to_commit"] = None if first_tracked is None or first_output is None else first_tracked - first_output
+    return out
+
+
+def _state_shares(state: list[str], names: tuple[str, ...]) -> dict[str, Any]:
+    """``<name>_pct`` (of the frames with an output) and ``<name>_frames`` for each state of ``names``."""
+    states = [s for s in state if s]
+    out: dict[str, Any] = {}
+    for name in names:
+        count = states.count(name)
+        out[f"{name}_pct"] = 100.0 * count / len(states) if states else 0.0
+        out[f"{name}_frames"] = count
+    return out
+
+
+def _target_metrics(series: TargetSeries, moving: bool, offline: TargetSeries | None = None) -> dict[str, Any]:
+    """Both pipelines' metrics on one target, and the offline replay's (``offline``: its series)."""
     raw = series_metrics(series.raw, series.truth, moving)
-    trk = series_metrics(series.output, series.truth, moving)
     raw["longest_stretch"] = 0  # the raw pick is the measurement itself
     raw_errors = rotation_errors(series.raw, series.truth)
     decisive = np.array(series.decisive, dtype=bool)
     measured = np.array([r is not None for r in series.raw], dtype=bool)
     raw["decisive_pct"] = 100.0 * float(decisive.sum()) / max(int(measured.sum()), 1)
     raw["decisive_wrong"] = int(np.sum(decisive & (np.nan_to_num(raw_errors, nan=0.0) > FLIP_DEG)))
-    trk["longest_stretch"] = longest_stretch(series.output, series.raw, series.decisive)
-    trk["ignored_run"] = longest_stretch(series.output, series.raw, series.decisive, gaps_end=False)
-    trk.update(wrong_tracked(series.output, series.truth, series.state))
-    trk.update(predicted_error_stats(series.output, series.truth, series.state))
-    trk.update(ambiguous_vs_raw(series.output, series.raw, series.truth, series.state))
-    states = [s for s in series.state if s]
-    first_output = next((i for i, s in enumerate(series.state) if s), None)
-    first_tracked = next((i for i, s in enumerate(series.state) if s == "tracked"), None)
-    trk.update(
-        {
-            "tracked_pct": 100.0 * states.count("tracked") / len(states) if states else 0.0,
-            "ambiguous_pct": 100.0 * states.count("ambiguous") / len(states) if states else 0.0,
-            "predicted_pct": 100.0 * states.count("predicted") / len(states) if states else 0.0,
-            "frames_to_commit": None if first_tracked is None or first_output is None else first_tracked - first_output,
-        }
-    )
-    return {"raw": raw, "tracker": trk}
+    out = {"raw": raw, "tracker": _output_metrics(series, moving, CAUSAL_STATES)}
+    if offline is not None:
+        out["offline"] = _output_metrics(offline, moving, OFFLINE_STATES, signed_lag=True)
+    return out
 
 
 def _pooled(run: ScenarioRun, per_target: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """Both pipelines' metrics pooled over the targets: error statistics over all (target, frame)
-    pairs, counts summed, stretches and lags the maximum, jitter the RMS."""
-    moving = run.scenario.moving
-    series = list(run.targets.values())
-    if len(series) == 1:
+    """Every pipeline's metrics pooled over the targets: error statistics over all (target, frame)
+    pairs, counts summed, stretches the maximum, lags the largest in size (an offline lag keeps its
+    sign), jitter the RMS."""
+    if len(run.targets) == 1:
         return {k: dict(v) for k, v in next(iter(per_target.values())).items()}
+    pipelines = [("raw", run.targets, "raw"), ("tracker", run.targets, "output")]
+    if run.offline:
+        pipelines.append(("offline", run.offline, "output"))
+    return {
+        pipeline: _pooled_pipeline(pipeline, list(series.values()), attr, per_target, run.scenario.moving)
+        for pipeline, series, attr in pipelines
+    }
 
-    def cat(attr: str) -> list:
-        return [x for s in series for x in getattr(s, attr)]
 
-    pooled: dict[str, dict[str, Any]] = {}
-    for pipeline, attr in (("raw", "raw"), ("tracker", "output")):
-        poses, truth = cat(attr), cat("truth")
-        pairs = [(p, t) for p, t in zip(poses, truth) if p is not None and t is not None]
-        out: dict[str, Any] = {"frames": len(pairs)}
-        if pairs:
-            rot, trans = np.array([pose_errors(p, t) for p, t in pairs]).T
-            out.update(
-                {
-                    "wrong_frames": int(np.sum(rot > FLIP_DEG)),
-                    "flipped_pct": 100.0 * float(np.mean(rot > FLIP_DEG)),
-                    "rot_median_deg": float(np.median(rot)),
-                    "rot_p95_deg": float(np.percentile(rot, 95)),
-                    "trans_median_pct": float(np.median(trans)),
-                }
-            )
-        rows = [m[pipeline] for m in per_target.values()]
-        for key in ("twitches", "decisive_wrong", "wrong_tracked", "ambiguous_wrong", "ambiguous_raw_wrong"):
-            if key in rows[0]:
-                out[key] = int(sum(r.get(key, 0) for r in rows))
-        for key in ("longest_stretch", "ignored_run", "lag_frames", "frames_to_commit"):
-            values = [r[key] for r in rows if r.get(key) is not None]
-            if values:
-                out[key] = max(values)
-        jitters = [r["jitter_deg"] for r in rows if "jitter_deg" in r]
-        if jitters and not moving:
-            out["jitter_deg"] = float(np.sqrt(np.mean(np.square(jitters))))
-        if pipeline == "raw":
-            decisive = np.array(cat("decisive"), dtype=bool)
-            out["decisive_pct"] = 100.0 * float(decisive.sum()) / max(sum(p is not None for p in poses), 1)
-        else:
-            out.update(wrong_tracked(poses, truth, cat("state")))
-            out.update(predicted_error_stats(poses, truth, cat("state")))
-            states = [s for s in cat("state") if s]
-            for name in ("tracked", "ambiguous", "predicted"):
-                out[f"{name}_pct"] = 100.0 * states.count(name) / len(states) if states else 0.0
-        pooled[pipeline] = out
-    return pooled
+def _pooled_pipeline(
+    pipeline: str, series: list[TargetSeries], attr: str, per_target: dict[str, dict[str, Any]], moving: bool
+) -> dict[str, Any]:
+    """One pipeline's metrics pooled over the targets (see :func:`_pooled`)."""
+
+    def cat(name: str) -> list:
+        return [x for s in series for x in getattr(s, name)]
+
+    poses, truth = cat(attr), cat("truth")
+    pairs = [(p, t) for p, t in zip(poses, truth) if p is not None and t is not None]
+    out: dict[str, Any] = {"frames": len(pairs)}
+    if pairs:
+        rot, trans = np.array([pose_errors(p, t) for p, t in pairs]).T
+        out.update(
+            {
+                "wrong_frames": int(np.sum(rot > FLIP_DEG)),
+                "flipped_pct": 100.0 * float(np.mean(rot > FLIP_DEG)),
+                "rot_median_deg": float(np.median(rot)),
+                "rot_p95_deg": float(np.percentile(rot, 95)),
+                "trans_median_pct": float(np.median(trans)),
+            }
+        )
+    rows = [m[pipeline] for m in per_target.values()]
+    for key in ("twitches", "decisive_wrong", "wrong_tracked", "ambiguous_wrong", "ambiguous_raw_wrong"):
+        if key in rows[0]:
+            out[key] = int(sum(r.get(key, 0) for r in rows))
+    for key in ("longest_stretch", "ignored_run", "lag_frames", "frames_to_commit"):
+        values = [r[key] for r in rows if r.get(key) is not None]
+        if values:
+            out[key] = max(values, key=abs)
+    jitters = [r["jitter_deg"] for r in rows if "jitter_deg" in r]
+    if jitters and not moving:
+        out["jitter_deg"] = float(np.sqrt(np.mean(np.square(jitters))))
+    if pipeline == "raw":
+        decisive = np.array(cat("decisive"), dtype=bool)
+        out["decisive_pct"] = 100.0 * float(decisive.sum()) / max(sum(p is not None for p in poses), 1)
+    else:
+        out.update(wrong_tracked(poses, truth, cat("state")))
+        out.update(predicted_error_stats(poses, truth, cat("state")))
+        out.update(_state_shares(cat("state"), OFFLINE_STATES if pipeline == "offline" else CAUSAL_STATES))
+    return out
 
 
 def _worst(per_target: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -205,19 +231,114 @@ def acceptance(result: dict[str, Any]) -> dict[str, Any]:
     return {"pass": not failed, "failed": failed}
 
 
-def evaluate(run: ScenarioRun, config: TrackerConfig | None = None) -> dict[str, Any]:
-    """Metrics of the raw pipeline and of the tracker on one scenario.
+# The acceptance of issue 20: the offline replay against the causal tracker on the same frames.
+OFFLINE_ACCEPTANCE = {
+    "wrong_excess_points": 1e-9,  # offline wrong-frame rate <= causal + this (percentage points)
+    "wrong_tracked": 0,
+    "jitter_excess_deg": 1e-9,  # static: offline jitter <= causal + this
+    "abs_lag_frames": 0.5,  # moving: |offline lag| <= this
+}
 
-    ``raw`` / ``tracker``: pooled over the targets (for one target: that target's); ``targets``:
-    per target; ``worst``: the worst target per acceptance metric; ``acceptance``: pass/fail."""
+# A criterion: (causal, offline) metrics of one scope -> (by how much it exceeds its limit, reason text)
+# or None where it does not apply.
+_Check = Callable[[dict[str, Any], dict[str, Any]], tuple[float, str] | None]
+
+
+def _offline_checks(moving: bool) -> list[_Check]:
+    """The per-scope criteria of :func:`offline_acceptance` (each fails where its excess is > 0)."""
+    limits = OFFLINE_ACCEPTANCE
+
+    def wrong(trk: dict, off: dict) -> tuple[float, str]:
+        causal, offline = trk.get("flipped_pct", 0.0), off.get("flipped_pct", 0.0)
+        excess = offline - causal - limits["wrong_excess_points"]
+        return excess, f"offline wrong {offline:.2f} % > causal {causal:.2f} %"
+
+    def wrong_tracked(trk: dict, off: dict) -> tuple[float, str]:
+        count = off.get("wrong_tracked", 0)
+        return count - limits["wrong_tracked"], f"{count} offline wrong tracked"
+
+    def jitter(trk: dict, off: dict) -> tuple[float, str] | None:
+        if moving or trk.get("jitter_deg") is None or off.get("jitter_deg") is None:
+            return None
+        causal, offline = trk["jitter_deg"], off["jitter_deg"]
+        excess = offline - causal - limits["jitter_excess_deg"]
+        return excess, f"offline jitter {offline:.4f} deg > causal {causal:.4f}"
+
+    def lag(trk: dict, off: dict) -> tuple[float, str] | None:
+        if not moving or off.get("lag_frames") is None:
+            return None
+        return abs(off["lag_frames"]) - limits["abs_lag_frames"], f"offline lag {off['lag_frames']} frames"
+
+    return [wrong, wrong_tracked, jitter, lag]
+
+
+def offline_acceptance(result: dict[str, Any]) -> dict[str, Any]:
+    """The issue-20 acceptance of the offline replay on one evaluated scenario (``result`` from
+    :func:`evaluate` with an ``offline`` pipeline): ``{"pass": bool, "failed": [reasons]}``.
+
+    Checked on the pooled numbers and on every target (``OFFLINE_ACCEPTANCE``): offline wrong-frame rate
+    (``flipped_pct``; ``interpolated`` frames count) at most the causal tracker's, no offline wrong
+    ``tracked`` frame, static jitter at most the causal's, and on moving scenarios ``|lag| <= 0.5`` frame
+    (the offline lag is signed, see :func:`~.metrics.lag_frames`). On the pooled counts only:
+
+    - where the scenario *decides at some point*, meaning the causal tracker **or** the offline replay
+      has a ``tracked`` frame: fewer offline ``ambiguous`` frames than causal (none where the causal has
+      none). Not evaluate()'s ``decidable`` (the 90th percentile of the wrong solution's reprojection
+      excess above the decision margin): that statistic calls "static 12cm 4m tilt20" decidable though
+      neither pass ever commits there; and not the causal tracker's commitment alone: a 90-frame
+      approach from 4 m is decided by the backward pass only (the causal tracker never commits), which
+      is what the offline replay is for;
+    - where the scenario is undecidable (evaluate()'s ``decidable`` false: no amount of evidence can
+      decide): no offline ``tracked`` frame (it stays ``ambiguous`` offline too).
+
+    One reason per failed criterion, with the pooled value where it fails there (else the worst
+    target's) and how many targets fail it."""
+    offline, trk = result["offline"], result["tracker"]
+    targets = result.get("targets") or {}
+    scopes = {"": (trk, offline)}
+    if len(targets) > 1:
+        scopes.update({name: (m["tracker"], m["offline"]) for name, m in targets.items() if "offline" in m})
+    failed = []
+    for check in _offline_checks(result["scenario"]["motion"] != "static"):
+        bad = [(out[0], name, out[1]) for name, pair in scopes.items() if (out := check(*pair)) is not None]
+        bad = [b for b in bad if b[0] > 0]
+        if not bad:
+            continue
+        pooled = next((b for b in bad if b[1] == ""), None)
+        _, name, text = pooled or max(bad)
+        failing = sum(1 for b in bad if b[1])
+        where = [] if not name else [name]
+        if failing and len(targets) > 1:
+            where.append(f"{failing} of {len(targets)} targets")
+        failed.append(text + (f" ({', '.join(where)})" if where else ""))
+    causal_ambiguous, offline_ambiguous = trk.get("ambiguous_frames", 0), offline.get("ambiguous_frames", 0)
+    if trk.get("tracked_frames", 0) or offline.get("tracked_frames", 0):
+        if offline_ambiguous > causal_ambiguous or (causal_ambiguous and offline_ambiguous >= causal_ambiguous):
+            failed.append(f"offline ambiguous {offline_ambiguous} frames, not fewer than causal {causal_ambiguous}")
+    if result.get("decidable") is False and offline.get("tracked_frames", 0):
+        failed.append(f"undecidable, yet {offline['tracked_frames']} offline tracked frames")
+    return {"pass": not failed, "failed": failed}
+
+
+def evaluate(run: ScenarioRun, config: TrackerConfig | None = None) -> dict[str, Any]:
+    """Metrics of the raw pipeline, of the tracker and (where ``run`` has it) of the offline replay on one
+    scenario.
+
+    ``raw`` / ``tracker`` / ``offline``: pooled over the targets (for one target: that target's);
+    ``targets``: per target; ``worst``: the worst target per acceptance metric; ``acceptance``: the
+    issue-16 pass/fail; ``offline_acceptance``: the issue-20 one (:func:`offline_acceptance`)."""
     config = config or TrackerConfig()
     moving = run.scenario.moving
-    per_target = {name: _target_metrics(series, moving) for name, series in run.targets.items()}
+    per_target = {
+        name: _target_metrics(series, moving, run.offline.get(name) if run.offline else None)
+        for name, series in run.targets.items()
+    }
     pooled = _pooled(run, per_target)
     result: dict[str, Any] = {
         "scenario": scenario_dict(run.scenario),
         "raw": pooled["raw"],
         "tracker": pooled["tracker"],
+        **({"offline": pooled["offline"]} if "offline" in pooled else {}),
         "targets": per_target,
         "worst": _worst(per_target),
     }
@@ -245,4 +366,6 @@ def evaluate(run: ScenarioRun, config: TrackerConfig | None = None) -> dict[str,
     if sheet is not None:
         result["sheet"] = sheet
     result["acceptance"] = acceptance(result)
+    if "offline" in result:
+        result["offline_acceptance"] = offline_acceptance(result)
     return result

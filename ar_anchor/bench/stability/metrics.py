@@ -18,9 +18,12 @@ from ..report import FLIP_DEG, SETTLE_FRAMES
 __all__ = [
     "DECISIVE_MARGIN_PX",
     "DECISIVE_RATIO",
+    "LAG_TOLERANCE",
+    "MAX_LAG_FRAMES",
     "ambiguous_vs_raw",
     "count_twitches",
     "is_decisive",
+    "lag_frames",
     "longest_stretch",
     "predicted_error_stats",
     "rotation_errors",
@@ -134,11 +137,39 @@ def count_twitches(poses: Sequence[Pose | None]) -> int:
 
 
 LAG_TOLERANCE = 0.05  # a shift must lower the median error by more than this fraction to count as lag
+MAX_LAG_FRAMES = 6  # the largest shift searched
 
 
-def series_metrics(poses: list[Pose | None], truth: list[Pose | None], moving: bool) -> dict[str, Any]:
+def lag_frames(poses: Sequence[Pose | None], truth: Sequence[Pose | None], *, signed: bool = False) -> int:
+    """The shift (frames) that best aligns ``poses`` with ``truth``: ``poses[i]`` against ``truth[i - shift]``.
+
+    Positive: the output lags (it shows at frame ``i`` what was true ``shift`` frames earlier); negative
+    (``signed`` only): it leads (it shows what will be true ``-shift`` frames later). Shifts 0..
+    ``MAX_LAG_FRAMES`` (``signed``: -``MAX_LAG_FRAMES``..+``MAX_LAG_FRAMES``; an offline output, which sees
+    the future, may lead). The smallest ``|shift|`` whose median rotation error is within
+    ``LAG_TOLERANCE`` of the best shift's (the lower error first on a tie of ``|shift|``): where the curve
+    is flat (an undecidable target's error is its ambiguity, not lag) noise would pick any shift; raw,
+    which cannot lag, showed 5."""
+    shifts = range(-MAX_LAG_FRAMES if signed else 0, MAX_LAG_FRAMES + 1)
+    medians = {}
+    for shift in shifts:
+        errors = [
+            angle_between_deg(poses[i].rotation, truth[i - shift].rotation)  # type: ignore[union-attr]
+            for i in range(max(shift, 0), min(len(poses), len(truth) + shift))
+            if poses[i] is not None and truth[i - shift] is not None
+        ]
+        medians[shift] = float(np.median(errors)) if errors else math.inf
+    best = min(medians.values())
+    within = [s for s in shifts if medians[s] <= best * (1.0 + LAG_TOLERANCE)]
+    return min(within, key=lambda s: (abs(s), medians[s]))
+
+
+def series_metrics(
+    poses: list[Pose | None], truth: list[Pose | None], moving: bool, *, signed_lag: bool = False
+) -> dict[str, Any]:
     """One pipeline's poses of one target against truth: frames, wrong frames, rotation and translation
-    error statistics, twitches; jitter after ``SETTLE_FRAMES`` (static) or lag in frames (``moving``)."""
+    error statistics, twitches; jitter after ``SETTLE_FRAMES`` (static) or lag in frames (``moving``:
+    :func:`lag_frames`, ``signed_lag`` lets it be negative: an output that leads)."""
     pairs = [(p, t) for p, t in zip(poses, truth) if p is not None and t is not None]
     if not pairs:
         return {"frames": 0, "wrong_frames": 0, "twitches": count_twitches(poses)}
@@ -157,16 +188,5 @@ def series_metrics(poses: list[Pose | None], truth: list[Pose | None], moving: b
         mean = mean_rotation([p.rotation for p in settled])
         out["jitter_deg"] = float(np.sqrt(np.mean([angle_between_deg(p.rotation, mean) ** 2 for p in settled])))
     if moving:
-        lags = []
-        for lag in range(0, 7):
-            errors = [
-                angle_between_deg(poses[i].rotation, truth[i - lag].rotation)
-                for i in range(lag, len(poses))
-                if poses[i] is not None and truth[i - lag] is not None
-            ]
-            lags.append(float(np.median(errors)) if errors else math.inf)
-        # the smallest shift within LAG_TOLERANCE of the best: where the curve is flat (an undecidable
-        # target's error is its ambiguity, not lag) noise would pick any shift; raw, which cannot lag, showed 5
-        best = min(lags)
-        out["lag_frames"] = next(i for i, v in enumerate(lags) if v <= best * (1.0 + LAG_TOLERANCE))
+        out["lag_frames"] = lag_frames(poses, truth, signed=signed_lag)
     return out
