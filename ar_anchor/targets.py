@@ -44,8 +44,8 @@ class TargetId(str):
             raise ValueError(f"write marker:{int(name)}, not marker:{name}")
         return super().__new__(cls, f"{kind}:{name}")
 
-    def __reduce__(self) -> tuple[object, tuple[str]]:  # pickled as its text (results spooled to disk, processes)
-        return (TargetId.parse, (str(self),))
+    def __reduce__(self) -> tuple[object, tuple[str, str]]:  # pickled as its parts (results spooled to disk)
+        return (TargetId, (self.kind, self.name))
 
     @classmethod
     def marker(cls, marker_id: int) -> TargetId:

@@ -31,7 +31,10 @@ def add_parser(commands: Any) -> None:
         "replay",
         "track a video file, an image folder or a glob of images",
         "Track every frame of a video file (container timestamps), an image folder or a glob "
-        "(natural order, --fps timestamps) and write poses.csv, summary.json and recording.rrd.",
+        "(natural order, --fps timestamps) and write poses.csv, summary.json and recording.rrd. "
+        "Each frame is decided with the whole recording (the flip filter also runs backwards; gaps are "
+        "interpolated): three passes, the source decoded twice. --causal: each frame from the frames "
+        "before it only, exactly as live.",
     )
     replay.add_argument(
         "source", metavar="SOURCE", help="video file, image folder, or a quoted glob such as 'shots/*.png'"
@@ -44,6 +47,12 @@ def add_parser(commands: Any) -> None:
     )
     add_tracker_options(replay)
     replay.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of image folders (default 30)")
+    replay.add_argument(
+        "--causal",
+        action="store_true",
+        help="decide each frame from the frames before it only (what live produces; one pass) instead of "
+        "with the whole recording",
+    )
     add_run_options(replay, "replay")
     replay.set_defaults(func=cmd_replay)
 
@@ -66,7 +75,7 @@ def _replay_camera(args: argparse.Namespace) -> Path:
 def cmd_replay(args: argparse.Namespace) -> int:
     """``ar-anchor replay SOURCE``: track a video file or images and record the run; the exit code."""
     from ..camera import CameraModel
-    from ..run.loop import run_session
+    from ..run.loop import OfflineReplay, run_session
     from ..run.paths import claim_out_dir, config_inputs, run_output_paths, source_inputs
     from ..sources import open_source
     from ..track.tracker import Tracker
@@ -84,7 +93,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         out_dir = args.out or default_out("replay")
         inputs = source_inputs(source) + config_inputs(config, args.config, camera_path)
         outputs_named = run_output_paths(out_dir, video_out=args.video_out)
-        progress = Progress(not args.quiet, "replay")
+        offline = None
+        if not args.causal and config.filter.enabled:  # (--no-filter: nothing to decide with hindsight)
+            offline = OfflineReplay(
+                reopen=lambda: open_source(args.source, live=False, fps=args.fps),
+                progress=lambda name: Progress(not args.quiet, f"replay {'2/3' if name == 'decide' else '3/3'} {name}"),
+            )
+        progress = Progress(not args.quiet, "replay" if offline is None else "replay 1/3 track")
         try:
             with claim_out_dir(out_dir, outputs_named, inputs):
                 outputs = run_session(
@@ -93,7 +108,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
                     out_dir,
                     options,
                     progress=progress,
-                    summary_extras=lambda: {"source_ended_early": source.info.ended_early},
+                    summary_extras=lambda: {
+                        "source_ended_early": source.info.ended_early,
+                        "decided_with": "the frames before each (causal)" if offline is None else "the whole recording",
+                    },
+                    offline=offline,
                 )
         finally:
             progress.close()

@@ -6,6 +6,12 @@ Whatever happens (end of stream, an error, Ctrl-C, SIGTERM) every output is clos
 complete and readable (:class:`~.run_outputs.RunOutputs` says in which order); ``summary.json`` then
 says how the run ended (``status``).
 
+An offline replay (:class:`OfflineReplay`, ``replay`` without ``--causal``) tracks in three passes: the
+frames are tracked as ``live`` would and their results kept in a temporary file (not in memory), the
+flip filter runs backwards over them (:mod:`ar_anchor.track.offline`), and the source is decoded again
+while the outputs are written from the offline answer (the live filter's beside it in the recording).
+Nothing is written before the last pass: an offline replay interrupted earlier leaves empty outputs.
+
 A run, step by step: check the options that could fail before any output exists (overlay models,
 ``--video-out``), create ``out_dir``; then, with Ctrl-C and SIGTERM held off while a frame's outputs
 are written (:class:`~.interrupts.InterruptGuard`): open the outputs, track every frame (:func:`_track`), stop
@@ -19,16 +25,17 @@ import os
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ..camera import opencv_path_problem
-from ..errors import InputError
+from ..errors import ArAnchorError, InputError
 from ..render.overlay import OverlayRenderer
 from ..render.video import SUPPORTED_EXTENSIONS
 from ..sources.base import Frame, FrameSource, SourceInfo
+from ..track.offline import SpoolStore, decide, offline_results
 from ..track.tracker import FrameResult, Tracker
 from .hints import RunHints
 from .interrupts import InterruptGuard
@@ -37,9 +44,20 @@ from .outputs import prepare_out_dir
 from .run_outputs import RunOutputs
 from .threads import Prefetcher
 
-__all__ = ["RunResult", "run_session"]
+__all__ = ["OfflineReplay", "RunResult", "run_session"]
 
 Progress = Callable[[int, int | None, FrameResult], Any]
+
+
+@dataclass(frozen=True)
+class OfflineReplay:
+    """A replay decided with the whole recording (see the module doc): ``reopen()`` opens the same source
+    again (its frames are decoded a second time for the outputs); ``progress(name)`` gives a progress
+    callback ``(done, total)`` for the passes after the first (``decide``, ``write``), with an optional
+    ``close()``."""
+
+    reopen: Callable[[], AbstractContextManager[FrameSource]]
+    progress: Callable[[str], Callable[[int, int], Any]] | None = None
 
 
 @dataclass(frozen=True)
@@ -62,11 +80,13 @@ def run_session(
     *,
     progress: Progress | None = None,
     summary_extras: Callable[[], dict[str, Any]] | None = None,
+    offline: OfflineReplay | None = None,
 ) -> RunResult:
     """Track every frame of ``source`` (up to ``options.max_frames``) and write the outputs to ``out_dir``.
 
     ``progress(frames_done, total, result)`` is called after each frame (total may be None);
     ``summary_extras()`` is merged into ``summary.json`` when the run ends, however it ends.
+    ``offline``: decide every frame with the whole recording (a replay; see the module doc).
     """
     options = options or RunOptions()
     renderer = _overlay_renderer(tracker, options)  # before any output exists: a bad model is a clean input error
@@ -74,6 +94,7 @@ def run_session(
     hints = RunHints(tracker.config)  # the wrong dictionary, a length in millimetres: said once, as it shows
     info = source.info
     status = "incomplete"
+    passes: dict[str, Any] = {}  # an offline replay's passes, for summary.json
     start = time.perf_counter()
     try:
         abandon = lambda: _abandon(outputs, options, time.perf_counter() - start, summary_extras)  # noqa: E731
@@ -81,7 +102,10 @@ def run_session(
             feed = _FrameFeed(source, info, options, guard)
             try:
                 outputs.open(tracker.camera, tracker.config.recording, info, renderer)
-                _track(feed, tracker, outputs, guard, options, progress, hints)
+                if offline is None:
+                    _track(feed, tracker, outputs, guard, options, progress, hints)
+                else:
+                    _track_offline(feed, tracker, outputs, guard, options, progress, hints, offline, passes)
             finally:
                 guard.hold()  # the closing is not interrupted: a signal now waits until the guard exits
                 feed.close()  # the decoding thread first: nothing reads the source any more
@@ -97,6 +121,8 @@ def run_session(
     finally:
         extras = summary_extras() if summary_extras is not None else {}
         extras = {**hints.finish(probe=status == "completed"), **extras}
+        if offline is not None:
+            extras["offline"] = passes
         summary = outputs.write_summary(status, time.perf_counter() - start, extras)
     return RunResult(
         outputs.out_dir, outputs.poses_csv, outputs.summary_json, outputs.recording_rrd, outputs.raw_video, summary
@@ -200,3 +226,119 @@ def _track(
             progress(outputs.summary.frames, feed.total, result)
         if options.max_frames is not None and outputs.summary.frames >= options.max_frames:
             break  # before taking another frame from the source
+
+
+def _track_offline(
+    feed: _FrameFeed,
+    tracker: Tracker,
+    outputs: RunOutputs,
+    guard: InterruptGuard,
+    options: RunOptions,
+    progress: Progress | None,
+    hints: RunHints,
+    offline: OfflineReplay,
+    passes: dict[str, Any],
+) -> None:
+    """An offline replay's three passes (see the module doc); ``passes`` says how far they got."""
+    with SpoolStore(outputs.out_dir) as spool:
+        passes["done"] = []
+        for frame, decode_ms in feed:
+            result = tracker.process(frame)
+            truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
+            spool.append((result, truth, {} if decode_ms is None else {"decode_ms": decode_ms}))
+            hints.after_frame(frame, result)
+            if progress is not None:
+                progress(len(spool), feed.total, result)
+            if options.max_frames is not None and len(spool) >= options.max_frames:
+                break
+        feed.close()
+        _close_progress(progress)
+        passes.update(done=["track"], frames=len(spool), spool_mb=round(spool.size_bytes / 1e6, 1))
+        records = _Records(spool)
+        bar = offline.progress("decide") if offline.progress is not None else None
+        plan = decide(records.results, tracker.config, bar)
+        _close_progress(bar)
+        passes["done"].append("decide")
+        bar = offline.progress("write") if offline.progress is not None else None
+        with offline.reopen() as again:
+            written = _write_offline(
+                again, records, offline_results(records.results, plan), outputs, guard, options, bar
+            )
+        _close_progress(bar)
+        if written < len(records):
+            raise ArAnchorError(
+                f"the source gave {written} frames when decoded again, {len(records)} the first time: "
+                "outputs cover those frames only"
+            )
+        passes["done"].append("write")
+
+
+def _write_offline(
+    source: FrameSource,
+    records: _Records,
+    results: Iterator[FrameResult],
+    outputs: RunOutputs,
+    guard: InterruptGuard,
+    options: RunOptions,
+    progress: Callable[[int, int], Any] | None,
+) -> int:
+    """The offline replay's last pass: ``source`` decoded again, each frame written with its offline
+    result; the number of frames written."""
+    feed = _FrameFeed(source, source.info, options, guard)
+    written = 0
+    try:
+        for frame, _ in feed:
+            if written >= len(records):
+                break
+            causal, truth, stages = records[written]
+            if (frame.index, frame.timestamp_ns) != (causal.index, causal.timestamp_ns):
+                raise ArAnchorError(
+                    f"the source gave frame {frame.index} at {frame.timestamp_ns} ns when decoded again, frame "
+                    f"{causal.index} at {causal.timestamp_ns} ns the first time: outputs cover the frames before"
+                )
+            result = next(results)
+            with guard.critical():
+                outputs.write(frame, result, truth, stages)
+            written += 1
+            if progress is not None:
+                progress(written, len(records))
+    finally:
+        feed.close()
+    return written
+
+
+def _close_progress(progress: object) -> None:
+    close = getattr(progress, "close", None)
+    if close is not None:
+        close()
+
+
+class _Records:
+    """The first pass's spooled (result, truth, stages) by position, the last one read kept (the output
+    pass reads each twice: for the offline result and for its truth); :attr:`results` the results alone."""
+
+    def __init__(self, spool: SpoolStore[tuple[FrameResult, Any, dict[str, float]]]) -> None:
+        self._spool = spool
+        self._last: tuple[int, tuple[FrameResult, Any, dict[str, float]]] | None = None
+        self.results = _ResultsView(self)
+
+    def __len__(self) -> int:
+        return len(self._spool)
+
+    def __getitem__(self, position: int) -> tuple[FrameResult, Any, dict[str, float]]:
+        if self._last is None or self._last[0] != position:
+            self._last = (position, self._spool[position])
+        return self._last[1]
+
+
+class _ResultsView:
+    """The results of :class:`_Records`, by position (a :class:`~ar_anchor.track.offline.FrameStore`)."""
+
+    def __init__(self, records: _Records) -> None:
+        self._records = records
+
+    def __len__(self) -> int:
+        return len(self._records)
+
+    def __getitem__(self, position: int) -> FrameResult:
+        return self._records[position][0]

@@ -360,6 +360,7 @@ def _percentiles(values: Sequence[float]) -> dict[str, float | None]:
 class _TargetStats:
     measured: int = 0
     states: dict[str, int] = field(default_factory=lambda: {str(state): 0 for state in TrackState})
+    causal_states: dict[str, int] | None = None  # offline replay: the live filter's states, for comparison
     in_view: int = 0
     measured_in_view: int = 0
     rotation_errors_deg: list[float] = field(default_factory=list)
@@ -389,6 +390,11 @@ class RunSummary:
             self.has_truth = True
             for name in truth:
                 self.targets.setdefault(name, _TargetStats()).in_view += 1
+        for name, target in (result.causal_targets or {}).items():
+            stats = self.targets.setdefault(name, _TargetStats())
+            if stats.causal_states is None:
+                stats.causal_states = {str(state): 0 for state in TrackState}
+            stats.causal_states[target.state] += 1
         for name, target in result.targets.items():
             stats = self.targets.setdefault(name, _TargetStats())
             stats.states[target.state] += 1
@@ -417,6 +423,8 @@ class RunSummary:
                 "detection_rate": stats.measured / self.frames if self.frames else 0.0,
                 "states": dict(stats.states),
             }
+            if stats.causal_states is not None:
+                entry["causal_states"] = dict(stats.causal_states)
             if self.has_truth:
                 entry["frames_in_view"] = stats.in_view
                 entry["detection_rate_in_view"] = stats.measured_in_view / stats.in_view if stats.in_view else None

@@ -97,6 +97,8 @@ class FrameResult:
     # this frame's per-frame solutions, by target (both IPPE solutions): what the filter took in, kept for
     # the offline pass (:mod:`ar_anchor.track.offline`) to run the filter again, backwards
     measurements: dict[TargetId, MarkerPose | BoardPose] = field(default_factory=dict)
+    # offline replay: what the live (causal) filter said of this frame, for comparison (None otherwise)
+    causal_targets: dict[TargetId, TargetResult] | None = None
 
 
 class Tracker:

@@ -12,6 +12,7 @@ PROJECTED = (  # the "AR overlay" view's contents: the camera's image, and the 3
     "+ $origin/**",
     "+ /world/**",
     "- /world/camera_trajectory",
+    "- /world/causal",
     "- /world/hypotheses",
     "- /world/labels",
     "- /world/truth_camera",

@@ -14,12 +14,14 @@ Entity tree
 ``world/labels``                  every target's name at its centre (the 3D view's; not in the AR overlay)
 ``world/hypotheses``              this frame's solution on each filter branch of every target, faint
 ``world/truth_camera``            the true camera centre (synthetic sources)
+``world/causal``                  offline replay: the live (causal) filter's pose of every target, as thin axes
 ``camera/overlay``                the annotated image, only with ``[recording] overlay_images``
 ``metrics/reproj_px/<target>``    RMS reprojection error of the output pose
 ``metrics/ambiguity/<target>``    IPPE error ratio (worse / better; near 1 = ambiguous)
 ``metrics/inliers/<target>``      corners a board's pose was solved from
 ``metrics/flip_evidence_px/<target>``  the filter's flip evidence (signed: + favours branch 0)
 ``metrics/rotation_error_deg/<target>``  against ground truth, when known
+``metrics/offline_vs_causal_deg/<target>``  offline replay: angle between its pose and the live filter's
 ``metrics/latency/<stage>``       per-stage time, milliseconds
 ``events``                        state changes, commits, switches, re-acquisitions, resets (TextLog)
 
@@ -83,6 +85,7 @@ _STATE_COLOURS = {
     TrackState.INTERPOLATED: (90, 200, 230),
 }
 _FAILED_COLOUR = (255, 60, 60)
+_CAUSAL_COLOURS = [(255, 120, 120, 160), (120, 255, 120, 160), (120, 120, 255, 160)]  # x, y, z: pale
 _BRANCH_COLOURS = np.array([(90, 200, 255, 90), (255, 140, 60, 90)], np.uint8)  # the filter's branch 0, 1
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
@@ -129,6 +132,7 @@ class RerunRecorder:
         self._labelled = False  # world/labels holds something (cleared when no target is left)
         self._world_from_camera: Pose | None = None  # the camera where the anchor last placed it
         self._hypotheses_drawn = False
+        self._causal_drawn = False
         self._distortion_note = _distortion_note(camera)  # logged in each part's first frame
         self._note_due = self._distortion_note is not None
         self._last_check = time.monotonic()
@@ -395,6 +399,7 @@ class RerunRecorder:
             labels.append((name, world_from_target.tvec, target.length_m))
         self._log_labels(labels)
         self._log_hypotheses(result, world_from_camera)
+        self._log_causal(result, world_from_camera)
 
     def _log_labels(self, labels: list[tuple[str, np.ndarray, float]]) -> None:
         """Every target's name at its centre, one ``Points3D`` for all (``world/labels``, logged whole each
@@ -456,6 +461,33 @@ class RerunRecorder:
         elif self._hypotheses_drawn:
             self.recording.clear("world/hypotheses")
             self._hypotheses_drawn = False
+
+    def _log_causal(self, result: FrameResult, world_from_camera: Pose) -> None:
+        """Offline replay: the live (causal) filter's pose of every target beside the offline one, as thin
+        axes (``world/causal``, all targets in one ``Arrows3D``), and the angle between the two poses."""
+        causal = result.causal_targets
+        if causal is None:
+            return
+        origins, vectors, colours = [], [], []
+        for name, target in causal.items():
+            offline = result.targets.get(name)
+            if offline is not None:
+                self.series.add(
+                    self._own(name, f"metrics/offline_vs_causal_deg/{entity_name(name)}"),
+                    angle_between_deg(offline.pose.rotation, target.pose.rotation),
+                )
+            world_from_target = world_from_camera.compose(target.pose)
+            axes = world_from_target.rotation.T * (target.length_m * 0.75)  # rows: the target's x, y, z
+            origins.extend([world_from_target.tvec] * 3)
+            vectors.extend(axes)
+            colours.extend(_CAUSAL_COLOURS)
+        if origins:
+            arrows = rr.Arrows3D(origins=np.array(origins), vectors=np.array(vectors), colors=np.array(colours))
+            self.recording.log("world/causal", arrows)
+            self._causal_drawn = True
+        elif self._causal_drawn:
+            self.recording.clear("world/causal")
+            self._causal_drawn = False
 
     def close(self, timeout_s: float = 10.0) -> None:
         """Send the metrics kept, flush everything to the sinks and close the file (the .rrd is complete
