@@ -27,6 +27,7 @@ _EXPORTS = {
     "demo_scene": "ar_anchor.synthetic",
     "load_config": "ar_anchor.config",
     "open_source": "ar_anchor.sources.open",
+    "smooth": "ar_anchor.track.offline",
 }
 
 __all__ = [*_EXPORTS, "__version__"]

@@ -211,14 +211,7 @@ def _track(
 ) -> None:
     """Track each frame of ``feed`` and hand it to ``outputs``; a frame's outputs are written whole."""
     for frame, decode_ms in feed:
-        began_ns = time.monotonic_ns()
-        result = tracker.process(frame)
-        tracked_ns = time.monotonic_ns()
-        stages = {} if decode_ms is None else {"decode_ms": decode_ms}
-        if frame.arrived_ns is not None:
-            stages["wait_ms"] = (began_ns - frame.arrived_ns) * 1e-6
-            stages["capture_to_pose_ms"] = (tracked_ns - frame.arrived_ns) * 1e-6
-        truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
+        result, stages, truth = _tracked(tracker, frame, decode_ms)
         with guard.critical():
             outputs.write(frame, result, truth, stages)
         hints.after_frame(frame, result)
@@ -226,6 +219,22 @@ def _track(
             progress(outputs.summary.frames, feed.total, result)
         if options.max_frames is not None and outputs.summary.frames >= options.max_frames:
             break  # before taking another frame from the source
+
+
+def _tracked(
+    tracker: Tracker, frame: Frame, decode_ms: float | None
+) -> tuple[FrameResult, dict[str, float], dict[str, Any] | None]:
+    """One frame tracked: its result, the loop's own stage times (ms: decode, and from the frame's arrival
+    the wait and capture-to-pose), and the truth of the targets the tracker reports (None: no truth)."""
+    began_ns = time.monotonic_ns()
+    result = tracker.process(frame)
+    tracked_ns = time.monotonic_ns()
+    stages = {} if decode_ms is None else {"decode_ms": decode_ms}
+    if frame.arrived_ns is not None:
+        stages["wait_ms"] = (began_ns - frame.arrived_ns) * 1e-6
+        stages["capture_to_pose_ms"] = (tracked_ns - frame.arrived_ns) * 1e-6
+    truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
+    return result, stages, truth
 
 
 def _track_offline(
@@ -243,9 +252,8 @@ def _track_offline(
     with SpoolStore(outputs.out_dir) as spool:
         passes["done"] = []
         for frame, decode_ms in feed:
-            result = tracker.process(frame)
-            truth = None if frame.truth is None else {k: v for k, v in frame.truth.items() if tracker.reports(k)}
-            spool.append((result, truth, {} if decode_ms is None else {"decode_ms": decode_ms}))
+            result, stages, truth = _tracked(tracker, frame, decode_ms)
+            spool.append((result, truth, stages))
             hints.after_frame(frame, result)
             if progress is not None:
                 progress(len(spool), feed.total, result)

@@ -339,10 +339,12 @@ def offline_results(frames: FrameStore[FrameResult], plan: OfflinePlan) -> Itera
 # motion (motion blur the tracker's blur test, a ratio of scales, may miss under sensor noise): not bridged.
 # (Hand-held synthetic clip with 200 deg/s turns: 0.2-0.35 in the turn's frames; a hidden marker: about 1.)
 _DETAIL_DROP = 0.5
-# A gap frame that measured fewer than this share of the other targets the gap's ends measured lost them
-# together (motion blur, a jerk): not bridged. (chessboard.avi, frame 72: 2 of 17 markers found, the camera
-# jerked; bridged, its markers were 1.2 deg and 6 mm off.) A lone target has no others: only the tests above.
+# A gap frame that measured fewer than this share of the other targets the gap's ends measured, and whose
+# detail dipped below _DETAIL_DIP of theirs, lost them to the camera (mild motion blur, a jerk): not bridged
+# in time. (chessboard.avi, frame 72: 2 of 17 markers found, detail 0.82 of the ends'; interpolated, its
+# markers were 1.2 deg and 6 mm off.) Targets hidden together in a sharp view (a hand) are bridged.
 _OTHERS_DROP = 0.5
+_DETAIL_DIP = 0.9
 # Two targets move together across a gap when their relative pose at its two ends differs by at most this
 # turn and this share of the companion's distance (measured relative poses on chessboard.avi's rigid sheet:
 # 0.24 deg, 0.6 mm RMS at about 0.3 m).
@@ -460,8 +462,11 @@ class _Bridge:
                     blurred
                     # the whole view lost its fine detail: the camera jerked
                     or lowest_detail < _DETAIL_DROP * min(plan.detail[position], plan.detail[later])
-                    # most of the other targets went with it: a bad frame, not this target hidden
-                    or fewest_others < _OTHERS_DROP * (min(plan.measured[position], plan.measured[later]) - 1)
+                    # most of the other targets went with it, and the view lost some detail: a bad frame
+                    or (
+                        fewest_others < _OTHERS_DROP * (min(plan.measured[position], plan.measured[later]) - 1)
+                        and lowest_detail < _DETAIL_DIP * min(plan.detail[position], plan.detail[later])
+                    )
                 )
                 return later, steady and self._smooth_enough(name, position, later)
             blurred = blurred or bool(plan.blurred[later])

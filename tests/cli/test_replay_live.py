@@ -524,19 +524,39 @@ def test_live_record_then_replay_is_frame_exact(tmp_path):
     capture.release()
     assert ok and image.shape[:2] == (360, 640)
     # when the recording is replayed (camera.yml is found beside raw.mkv) with the config the synthetic
-    # camera ran with (the demo scene's: a real recording tracks exactly what its --config says)
+    # camera ran with (the demo scene's: a real recording tracks exactly what its --config says), --causal
+    # (as live decides) and by default (with the whole recording)
     demo = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"
-    replay = run_cli(
-        ["-q", "replay", str(out / "raw.mkv"), "--config", str(demo), "--out", "out2", "--video-out", "replay.mkv"],
-        tmp_path,
+    replays = run_all(
+        {
+            mode: (
+                ["-q", "replay", str(out / "raw.mkv"), "--config", str(demo), "--out", f"out_{mode}", *extra],
+                tmp_path,
+            )
+            for mode, extra in (("causal", ["--causal", "--video-out", "replay.mkv"]), ("offline", []))
+        }
     )
-    assert replay.returncode == 0, describe(replay)
-    assert_no_traceback(replay)
+    for replay in replays.values():
+        assert replay.returncode == 0, describe(replay)
+        assert_no_traceback(replay)
     assert count_decoded_frames(tmp_path / "replay.mkv") == 15
-    # then the replay sees the very same frames: identical poses.csv, indices and timestamps included
-    assert (tmp_path / "out2" / "poses.csv").read_text() == (out / "poses.csv").read_text()
-    assert read_summary(tmp_path / "out2")["frames"] == 15
-    verify_rrd(tmp_path / "out2" / "recording.rrd")
+    # then the causal replay sees the very same frames and decides as live did: identical poses.csv,
+    # indices and timestamps included
+    assert (tmp_path / "out_causal" / "poses.csv").read_text() == (out / "poses.csv").read_text()
+    for mode in replays:
+        assert read_summary(tmp_path / f"out_{mode}")["frames"] == 15
+        verify_rrd(tmp_path / f"out_{mode}" / "recording.rrd")
+    # and the offline one covers the same frames and targets, decided with the whole recording
+    live_rows, offline_rows = read_poses(out / "poses.csv"), read_poses(tmp_path / "out_offline" / "poses.csv")
+    assert {(r["frame"], r["target"]) for r in live_rows if r["state"] != "predicted"} <= {
+        (r["frame"], r["target"]) for r in offline_rows
+    }
+    summary = read_summary(tmp_path / "out_offline")
+    assert summary["decided_with"] == "the whole recording" and summary["offline"]["done"] == [
+        "track",
+        "decide",
+        "write",
+    ]
 
 
 def test_sigint_during_live_record_leaves_complete_outputs(tmp_path):
