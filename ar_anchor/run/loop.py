@@ -114,6 +114,12 @@ def run_session(
     except KeyboardInterrupt as err:
         status = "interrupted"
         err.out_dir = outputs.out_dir  # type: ignore[attr-defined]  # where the outputs are, for the last line
+        if offline is not None and "writing" not in passes:
+            done = passes.get("done") or ["none"]
+            err.note = (  # type: ignore[attr-defined]
+                f"the offline replay was interrupted before writing (passes done: {', '.join(done)}): the outputs "
+                "are empty; replay --causal writes as it goes"
+            )
         raise
     except BaseException:
         status = "failed"
@@ -268,6 +274,7 @@ def _track_offline(
         _close_progress(bar)
         passes["done"].append("decide")
         bar = offline.progress("write") if offline.progress is not None else None
+        passes["writing"] = True
         with offline.reopen() as again:
             written = _write_offline(
                 again, records, offline_results(records.results, plan), outputs, guard, options, bar
@@ -279,6 +286,7 @@ def _track_offline(
                 "outputs cover those frames only"
             )
         passes["done"].append("write")
+        del passes["writing"]
 
 
 def _write_offline(

@@ -454,17 +454,23 @@ def test_live_on_a_missing_device_is_exit_2_naming_it(tmp_path, sequence, with_c
 # ============================================================================ 4. Ctrl-C during a replay
 
 
-def test_sigint_during_replay_leaves_complete_outputs(tmp_path, sequence):
-    # given a long image folder (the clip's PNGs repeated: about 5 s of tracking)
+def long_folder(tmp_path: Path, sequence: Sequence, total: int) -> Path:
+    """An image folder of ``total`` frames: the clip's PNGs repeated (hard links where possible)."""
     folder = tmp_path / "long"
     folder.mkdir()
-    total = 1500
     for index in range(total):
         source, target = sequence.png_dir / f"frame_{index % FRAMES}.png", folder / f"frame_{index}.png"
         try:
             os.link(source, target)
         except OSError:
             shutil.copyfile(source, target)
+    return folder
+
+
+def test_sigint_during_replay_leaves_complete_outputs(tmp_path, sequence):
+    # given a long image folder (the clip's PNGs repeated: about 5 s of tracking)
+    total = 1500
+    folder = long_folder(tmp_path, sequence, total)
     out = tmp_path / "out"
     # when it is interrupted once more than 10 frames are written: a clean stop (see run_and_interrupt)
     argv = ["-q", "replay", str(folder), "--camera", str(sequence.camera_yml), "--out", str(out)]
@@ -473,6 +479,38 @@ def test_sigint_during_replay_leaves_complete_outputs(tmp_path, sequence):
     assert 10 < summary["frames"] < total
     rows = read_poses(out / "poses.csv")
     assert int(rows[-1]["frame"]) == summary["frames"] - 1
+
+
+def test_sigint_before_an_offline_replay_writes_leaves_empty_complete_outputs_and_says_so(tmp_path, sequence):
+    # given a replay decided with the whole recording, long enough that its first pass takes seconds
+    folder = long_folder(tmp_path, sequence, 1500)
+    out = tmp_path / "out"
+    argv = ["replay", str(folder), "--camera", str(sequence.camera_yml), "--out", str(out)]
+    process = subprocess.Popen(cli(argv), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        # when it is interrupted during its first pass (the summary says the run is going, nothing written)
+        deadline = time.monotonic() + TIMEOUT_S
+        while not (out / "summary.json").is_file() or not (out / "poses.csv").is_file():
+            assert process.poll() is None and time.monotonic() < deadline, "the run never started"
+            time.sleep(0.05)
+        time.sleep(1.0)
+        assert process.poll() is None and frames_in_poses(out / "poses.csv") == 0
+        process.send_signal(signal.SIGINT)
+        _stdout, stderr = process.communicate(timeout=TIMEOUT_S)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    # then it stops cleanly, says the outputs are empty and why, and leaves them complete
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("ar-anchor: interrupted;") and "interrupted before writing" in last and "--causal" in last
+    summary = read_summary(out)
+    assert summary["status"] == "interrupted" and summary["frames"] == 0
+    assert summary["offline"]["done"] in ([], ["track"], ["track", "decide"])
+    assert (out / "poses.csv").read_text().splitlines() == [POSES_HEADER]
+    verify_rrd(out / "recording.rrd")
 
 
 # ============================================================================ 5. live, synthetic device

@@ -4,6 +4,7 @@ loop itself (ar_anchor.run.loop), without the CLI around them."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import threading
 import time
@@ -14,8 +15,9 @@ import pytest
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import demo_config
+from ar_anchor.errors import ArAnchorError
 from ar_anchor.render.video import AnnotatedVideoWriter
-from ar_anchor.run.loop import run_session
+from ar_anchor.run.loop import OfflineReplay, run_session
 from ar_anchor.run.options import RunOptions
 from ar_anchor.run.outputs import PosesCsvWriter, RawVideoWriter
 from ar_anchor.run.run_outputs import RunOutputs, close_in_order
@@ -239,3 +241,52 @@ def test_a_signal_raised_between_the_prefetchers_polls_leaves_its_queue_usable()
     started = time.monotonic()
     prefetcher.close(timeout_s=5.0)
     assert time.monotonic() - started < 2.0
+
+
+def test_an_offline_run_writes_the_offline_answer_for_every_frame_once_decided(tmp_path):
+    # given a synthetic clip replayed offline (the same source opened again for the outputs)
+    scene = small_scene(frames=12)
+    reopened = []
+
+    def reopen() -> SyntheticSource:
+        reopened.append(True)
+        return SyntheticSource(scene)
+
+    passes_seen: list[str] = []
+    progress = lambda name: lambda done, total: passes_seen.append(name) if done == total else None  # noqa: E731
+    with SyntheticSource(scene) as source:
+        result = run_session(
+            source,
+            Tracker(demo_config(), scene.camera),
+            tmp_path / "out",
+            RunOptions(),
+            offline=OfflineReplay(reopen, progress),
+        )
+    # then every frame is written once, from the second decode, after both later passes ran
+    assert reopened == [True] and passes_seen == ["decide", "write"]
+    summary = result.summary
+    assert summary["status"] == "completed" and summary["frames"] == 12
+    assert summary["offline"]["done"] == ["track", "decide", "write"] and summary["offline"]["frames"] == 12
+    assert all("causal_states" in entry for entry in summary["targets"].values())
+    with result.poses_csv.open() as handle:
+        frames = {int(row["frame"]) for row in csv.DictReader(handle)}
+    assert frames and frames <= set(range(12)) and len(frames) >= summary["frames_with_pose"] > 0
+
+
+def test_an_offline_run_whose_source_decodes_differently_the_second_time_fails_naming_it(tmp_path):
+    # given a source that gives fewer frames the second time it is opened (a file changed under the run)
+    scene = small_scene(frames=10)
+    with SyntheticSource(scene) as source:
+        # when it is replayed offline
+        with pytest.raises(ArAnchorError, match="6 frames when decoded again, 10 the first time"):
+            run_session(
+                source,
+                Tracker(demo_config(), scene.camera),
+                tmp_path / "out",
+                RunOptions(),
+                offline=OfflineReplay(lambda: SyntheticSource(dataclasses.replace(scene, frames=6))),
+            )
+    # then the outputs hold the frames written before it, complete, and the summary says it failed
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["status"] == "failed" and summary["frames"] == 6
+    assert summary["offline"]["done"] == ["track", "decide"]
