@@ -15,6 +15,7 @@ from ar_anchor.bench.stability import (
     ScenarioRun,
     TargetSeries,
     evaluate,
+    fractional_lag,
     lag_frames,
     offline_acceptance,
     offline_table,
@@ -57,6 +58,18 @@ def test_the_signed_lag_is_negative_for_an_output_that_leads_and_positive_for_on
     assert "lag_frames" not in series_metrics(leads, truth, moving=False, signed_lag=True)
 
 
+def test_the_fractional_lag_finds_a_shift_between_whole_frames():
+    # given a target turning steadily, seen 2 frames late, 1.5 frames early, and on time
+    truth = [turned(3.0 * i) for i in range(60)]
+    late = [turned(3.0 * (i - 2)) for i in range(60)]
+    early = [turned(3.0 * (i + 1.5)) for i in range(60)]
+    # then the fractional lag is that shift (to a tenth of a frame), signed like lag_frames
+    assert fractional_lag(late, truth) == pytest.approx(2.0, abs=0.1)
+    assert fractional_lag(early, truth) == pytest.approx(-1.5, abs=0.1)
+    assert fractional_lag(truth, truth) == pytest.approx(0.0, abs=0.1)
+    assert fractional_lag([None] * 60, truth) is None
+
+
 def test_the_signed_lag_takes_the_smallest_shift_on_a_flat_curve_and_ignores_gaps():
     # given an output that is a constant 20 deg off a static truth: every shift is as good
     truth = [turned(0.0)] * 30
@@ -80,7 +93,7 @@ def hand_made(motion: str = "static", targets: int = 1) -> dict:
     if motion == "static":
         causal["jitter_deg"], offline["jitter_deg"] = 0.02, 0.01
     else:
-        causal["lag_frames"], offline["lag_frames"] = 1, 0
+        causal["lag_frames"], offline["lag_frames"], offline["lag_vs_raw_frames"] = 1, 0, 0.1
     per_target = {f"marker:{k}": {"tracker": dict(causal), "offline": dict(offline)} for k in range(targets)}
     return {
         "scenario": {"name": "hand-made", "motion": motion},
@@ -118,11 +131,14 @@ def test_offline_acceptance_fails_on_each_criterion():
     result = hand_made()
     result["offline"]["jitter_deg"] = 0.03
     failing(result, "offline jitter 0.0300 deg > causal 0.0200")
-    # a moving scenario lagging (or leading) by a frame
-    for lag in (1, -1):
+    # a moving scenario lagging (or leading) the raw measurements by more than half a frame
+    for lag in (0.6, -0.6):
         result = hand_made("orbit")
-        result["offline"]["lag_frames"] = lag
-        failing(result, f"offline lag {lag} frames")
+        result["offline"]["lag_vs_raw_frames"] = lag
+        failing(result, f"offline lag {lag:+.2f} frames against the raw measurements")
+    result = hand_made("orbit")
+    result["offline"]["lag_frames"] = -1  # a whole-frame lead the raw measurements share (0.1 of it added)
+    assert offline_acceptance(result)["pass"]
     # a deciding scenario with as many ambiguous frames offline as causal
     result = hand_made()
     result["offline"]["ambiguous_frames"] = 20

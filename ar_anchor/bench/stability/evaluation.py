@@ -16,6 +16,7 @@ from ...geometry import pose_errors
 from ..report import FLIP_DEG
 from .metrics import (
     ambiguous_vs_raw,
+    fractional_lag,
     longest_stretch,
     predicted_error_stats,
     rotation_errors,
@@ -81,6 +82,10 @@ def _target_metrics(series: TargetSeries, moving: bool, offline: TargetSeries | 
     out = {"raw": raw, "tracker": _output_metrics(series, moving, CAUSAL_STATES)}
     if offline is not None:
         out["offline"] = _output_metrics(offline, moving, OFFLINE_STATES, signed_lag=True)
+        if moving:  # the lag the offline replay adds: its fractional lag less the raw measurements' own
+            own, measured = fractional_lag(offline.output, offline.truth), fractional_lag(series.raw, series.truth)
+            if own is not None and measured is not None:
+                out["offline"]["lag_vs_raw_frames"] = own - measured
     return out
 
 
@@ -125,7 +130,7 @@ def _pooled_pipeline(
     for key in ("twitches", "decisive_wrong", "wrong_tracked", "ambiguous_wrong", "ambiguous_raw_wrong"):
         if key in rows[0]:
             out[key] = int(sum(r.get(key, 0) for r in rows))
-    for key in ("longest_stretch", "ignored_run", "lag_frames", "frames_to_commit"):
+    for key in ("longest_stretch", "ignored_run", "lag_frames", "lag_vs_raw_frames", "frames_to_commit"):
         values = [r[key] for r in rows if r.get(key) is not None]
         if values:
             out[key] = max(values, key=abs)
@@ -236,7 +241,7 @@ OFFLINE_ACCEPTANCE = {
     "wrong_excess_points": 1e-9,  # offline wrong-frame rate <= causal + this (percentage points)
     "wrong_tracked": 0,
     "jitter_excess_deg": 1e-9,  # static: offline jitter <= causal + this
-    "abs_lag_frames": 0.5,  # moving: |offline lag| <= this
+    "abs_lag_frames": 0.5,  # moving: |offline lag - the raw measurements' own| <= this (fractional frames)
 }
 
 # A criterion: (causal, offline) metrics of one scope -> (by how much it exceeds its limit, reason text)
@@ -265,9 +270,10 @@ def _offline_checks(moving: bool) -> list[_Check]:
         return excess, f"offline jitter {offline:.4f} deg > causal {causal:.4f}"
 
     def lag(trk: dict, off: dict) -> tuple[float, str] | None:
-        if not moving or off.get("lag_frames") is None:
+        if not moving or off.get("lag_vs_raw_frames") is None:
             return None
-        return abs(off["lag_frames"]) - limits["abs_lag_frames"], f"offline lag {off['lag_frames']} frames"
+        value = off["lag_vs_raw_frames"]
+        return abs(value) - limits["abs_lag_frames"], f"offline lag {value:+.2f} frames against the raw measurements"
 
     return [wrong, wrong_tracked, jitter, lag]
 
@@ -278,8 +284,12 @@ def offline_acceptance(result: dict[str, Any]) -> dict[str, Any]:
 
     Checked on the pooled numbers and on every target (``OFFLINE_ACCEPTANCE``): offline wrong-frame rate
     (``flipped_pct``; ``interpolated`` frames count) at most the causal tracker's, no offline wrong
-    ``tracked`` frame, static jitter at most the causal's, and on moving scenarios ``|lag| <= 0.5`` frame
-    (the offline lag is signed, see :func:`~.metrics.lag_frames`). On the pooled counts only:
+    ``tracked`` frame, static jitter at most the causal's, and on moving scenarios no lag: the lag the
+    offline replay adds, its fractional lag (:func:`~.metrics.fractional_lag`) less that of the raw
+    per-frame measurements of the same target, within ±0.5 frame. (Against the truth alone, the raw
+    measurements themselves lead by up to 0.8 frame on a hand-held clip with a rolling shutter and
+    exposure blur: a rendering-time offset no output can remove, and that whole-frame shifts round to
+    -1.) On the pooled counts only:
 
     - where the scenario *decides at some point*, meaning the causal tracker **or** the offline replay
       has a ``tracked`` frame: fewer offline ``ambiguous`` frames than causal (none where the causal has

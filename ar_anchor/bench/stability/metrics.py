@@ -22,6 +22,7 @@ __all__ = [
     "MAX_LAG_FRAMES",
     "ambiguous_vs_raw",
     "count_twitches",
+    "fractional_lag",
     "is_decisive",
     "lag_frames",
     "longest_stretch",
@@ -162,6 +163,30 @@ def lag_frames(poses: Sequence[Pose | None], truth: Sequence[Pose | None], *, si
     best = min(medians.values())
     within = [s for s in shifts if medians[s] <= best * (1.0 + LAG_TOLERANCE)]
     return min(within, key=lambda s: (abs(s), medians[s]))
+
+
+def fractional_lag(poses: Sequence[Pose | None], truth: Sequence[Pose | None]) -> float | None:
+    """The shift (frames, fractional) at which ``poses`` best match ``truth``: the minimum of a parabola
+    through the median rotation error at the best whole shift (-``MAX_LAG_FRAMES``..+``MAX_LAG_FRAMES``)
+    and its two neighbours (the best whole shift itself at the range's ends). Signs as
+    :func:`lag_frames`. None when there is nothing to compare."""
+    medians = []
+    for shift in range(-MAX_LAG_FRAMES, MAX_LAG_FRAMES + 1):
+        errors = [
+            angle_between_deg(poses[i].rotation, truth[i - shift].rotation)  # type: ignore[union-attr]
+            for i in range(max(shift, 0), min(len(poses), len(truth) + shift))
+            if poses[i] is not None and truth[i - shift] is not None
+        ]
+        medians.append(float(np.median(errors)) if errors else math.inf)
+    if not np.isfinite(medians).any():
+        return None
+    k = int(np.argmin(medians))
+    if k == 0 or k == len(medians) - 1 or not np.isfinite([medians[k - 1], medians[k + 1]]).all():
+        return float(k - MAX_LAG_FRAMES)
+    before, at, after = medians[k - 1], medians[k], medians[k + 1]
+    curvature = before - 2.0 * at + after
+    offset = 0.5 * (before - after) / curvature if curvature > 0 else 0.0
+    return float(k - MAX_LAG_FRAMES + offset)
 
 
 def series_metrics(
