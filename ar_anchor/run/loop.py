@@ -35,7 +35,8 @@ from ..errors import ArAnchorError, InputError
 from ..render.overlay import OverlayRenderer
 from ..render.video import SUPPORTED_EXTENSIONS
 from ..sources.base import Frame, FrameSource, SourceInfo
-from ..track.offline import SpoolStore, decide, offline_results
+from ..track.offline import decide, offline_results
+from ..track.spool import SpoolStore
 from ..track.tracker import FrameResult, Tracker
 from .hints import RunHints
 from .interrupts import InterruptGuard

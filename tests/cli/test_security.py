@@ -81,8 +81,8 @@ AUDITED = {
 
 # module -> why pickle there is safe (its imports and calls are allowed in that module only)
 PICKLE_AUDITED = {
-    "ar_anchor/track/offline.py": "the spool: an unnamed temporary file the run wrote itself, never input, read "
-    "back by _SpoolUnpickler (the package's classes and numpy arrays only)",
+    "ar_anchor/track/spool.py": "the offline replay's spool: an unnamed temporary file the run wrote itself, "
+    "never input, read back by _SpoolUnpickler (the package's classes and numpy arrays only)",
 }
 
 
@@ -186,7 +186,7 @@ def test_the_package_never_runs_input_as_code():
 def test_the_offline_spool_reads_back_only_the_package_s_own_objects(tmp_path):
     from ar_anchor.geometry import Pose
     from ar_anchor.targets import TargetId
-    from ar_anchor.track.offline import SpoolStore
+    from ar_anchor.track.spool import SpoolStore
 
     with SpoolStore(tmp_path) as spool:
         spool.append({TargetId.marker(3): Pose(np.ones(3), np.zeros(3))})
