@@ -30,13 +30,14 @@ def add_parser(commands: Any) -> None:
     )
     bench.add_argument(
         "name",
-        choices=("stability", "boards", "overlay", "speed", "run", "real", "profile"),
+        choices=("stability", "boards", "overlay", "speed", "run", "real", "profile", "offline"),
         help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
         "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop; "
         "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p; "
         "real: relative-pose consistency of markers on one rigid sheet in a real video (tracker, its raw "
         "per-frame pick, plain OpenCV), default chessboard.avi from $AR_ANCHOR_REALDATA; profile: the tracker's CPU "
-        "per stage and its costliest functions (cProfile) on a real video (the same --video options as real)",
+        "per stage and its costliest functions (cProfile) on a real video (the same --video options as real); "
+        "offline: the offline replay against --causal (time, memory over a long clip, chessboard.avi scores)",
     )
     bench.add_argument("--video", type=Path, default=None, help="real: the video (default: chessboard.avi)")
     bench.add_argument(
@@ -54,7 +55,8 @@ def add_parser(commands: Any) -> None:
         "--minutes",
         type=non_negative_float,
         default=None,
-        help="run: length of the live run whose memory is watched (default 10; 0: skip; --quick: 0)",
+        help="run: length of the live run whose memory is watched (default 10; 0: skip; --quick: 0); "
+        "offline: length of the synthetic clip (default 10; 0: skip; --quick: 1)",
     )
     bench.add_argument(
         "--clips",
@@ -132,6 +134,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
             parts=clips,
             frames=args.frames,
         )
+    elif args.name == "offline":
+        from ..bench.offline import write_offline_report
+
+        if args.minutes is not None:
+            command += f" --minutes {args.minutes:g}"
+        write_offline_report(args.out, quick=args.quick, minutes=args.minutes, progress=progress, command=command)
     elif args.name == "speed":
         from ..bench.speed import write_speed_report
 
