@@ -134,10 +134,14 @@ def test_offline_acceptance_fails_on_each_criterion():
     # a moving scenario lagging (or leading) the raw measurements by more than half a frame
     for lag in (0.6, -0.6):
         result = hand_made("orbit")
+        result["offline"]["lag_frames"] = 1 if lag > 0 else -1
         result["offline"]["lag_vs_raw_frames"] = lag
         failing(result, f"offline lag {lag:+.2f} frames against the raw measurements")
     result = hand_made("orbit")
     result["offline"]["lag_frames"] = -1  # a whole-frame lead the raw measurements share (0.1 of it added)
+    assert offline_acceptance(result)["pass"]
+    result = hand_made("orbit")
+    result["offline"]["lag_vs_raw_frames"] = -3.3  # a flat curve's noise: no whole-frame lag, nothing to check
     assert offline_acceptance(result)["pass"]
     # a deciding scenario with as many ambiguous frames offline as causal
     result = hand_made()
