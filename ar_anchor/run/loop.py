@@ -104,7 +104,7 @@ def run_session(
             try:
                 outputs.open(tracker.camera, tracker.config.recording, info, renderer)
                 if offline is None:
-                    _track(feed, tracker, outputs, guard, options, progress, hints)
+                    _track(feed, tracker, options, progress, hints, _writer(outputs, guard))
                 else:
                     _track_offline(feed, tracker, outputs, guard, options, progress, hints, offline, passes)
             finally:
@@ -210,22 +210,32 @@ class _FrameFeed:
 def _track(
     feed: _FrameFeed,
     tracker: Tracker,
-    outputs: RunOutputs,
-    guard: InterruptGuard,
     options: RunOptions,
     progress: Progress | None,
     hints: RunHints,
+    keep: Callable[[Frame, FrameResult, dict[str, Any] | None, dict[str, float]], int],
 ) -> None:
-    """Track each frame of ``feed`` and hand it to ``outputs``; a frame's outputs are written whole."""
+    """Track each frame of ``feed`` and ``keep(frame, result, truth, stages)`` it (written to the outputs,
+    or spooled for an offline replay), which returns how many frames are kept so far."""
     for frame, decode_ms in feed:
         result, stages, truth = _tracked(tracker, frame, decode_ms)
-        with guard.critical():
-            outputs.write(frame, result, truth, stages)
+        kept = keep(frame, result, truth, stages)
         hints.after_frame(frame, result)
         if progress is not None:
-            progress(outputs.summary.frames, feed.total, result)
-        if options.max_frames is not None and outputs.summary.frames >= options.max_frames:
+            progress(kept, feed.total, result)
+        if options.max_frames is not None and kept >= options.max_frames:
             break  # before taking another frame from the source
+
+
+def _writer(outputs: RunOutputs, guard: InterruptGuard) -> Callable[..., int]:
+    """``keep`` for :func:`_track`: each frame's outputs written whole (never cut by a signal)."""
+
+    def write(frame: Frame, result: FrameResult, truth: dict[str, Any] | None, stages: dict[str, float]) -> int:
+        with guard.critical():
+            outputs.write(frame, result, truth, stages)
+        return outputs.summary.frames
+
+    return write
 
 
 def _tracked(
@@ -258,14 +268,12 @@ def _track_offline(
     """An offline replay's three passes (see the module doc); ``passes`` says how far they got."""
     with SpoolStore(outputs.out_dir) as spool:
         passes["done"] = []
-        for frame, decode_ms in feed:
-            result, stages, truth = _tracked(tracker, frame, decode_ms)
+
+        def keep(_frame: Frame, result: FrameResult, truth: dict[str, Any] | None, stages: dict[str, float]) -> int:
             spool.append((result, truth, stages))
-            hints.after_frame(frame, result)
-            if progress is not None:
-                progress(len(spool), feed.total, result)
-            if options.max_frames is not None and len(spool) >= options.max_frames:
-                break
+            return len(spool)
+
+        _track(feed, tracker, options, progress, hints, keep)
         feed.close()
         _close_progress(progress)
         passes.update(done=["track"], frames=len(spool), spool_mb=round(spool.size_bytes / 1e6, 1))
