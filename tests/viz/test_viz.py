@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -460,3 +462,33 @@ def test_no_viewer_is_spawned_without_a_display(monkeypatch):
 
 
 # a viewer already listening is not reused by --spawn: tests/viz/test_viewer_connect.py
+
+
+def test_an_offline_result_shows_the_live_filter_s_pose_beside_its_own(tmp_path, camera):
+    # given offline results that carry the live (causal) filter's targets, one of them 30 deg off
+    path = tmp_path / "recording.rrd"
+    recorder = RerunRecorder(path, camera=camera, settings=RecordingConfig(image_every=0))
+    spy = _Spy(recorder)
+    added = {}
+    add = recorder.series.add
+    recorder.series.add = lambda entity, value: (added.setdefault(entity, []).append(value), add(entity, value))
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    for index, names in enumerate([["marker:1", "marker:2"], ["marker:1"], []]):
+        offline = _result(index, names, camera)
+        causal = {
+            name: dataclasses.replace(t, pose=Pose(np.array([0.0, math.radians(30.0), 0.0]), t.pose.tvec))
+            if name == "marker:2"
+            else t
+            for name, t in offline.targets.items()
+        }
+        spy.frame = index
+        recorder.log_frame(Frame(image, index, index * 33_000_000), dataclasses.replace(offline, causal_targets=causal))
+    recorder.close()
+    # then every causal target's axes are one entity, three arrows a target, cleared when none is left
+    arrows = {frame: len(data.vectors.as_arrow_array()) for frame, data in spy.logged["world/causal"]}
+    assert arrows == {0: 6, 1: 3}
+    assert "world/causal" in spy.cleared_flat[2]
+    # and the angle between the offline and the live pose is a metric per target
+    assert added["metrics/offline_vs_causal_deg/marker_1"] == pytest.approx([0.0, 0.0], abs=1e-6)
+    assert added["metrics/offline_vs_causal_deg/marker_2"] == pytest.approx([30.0])
+    verify(path)
