@@ -60,6 +60,7 @@ __all__ = [
 MODES: tuple[str, ...] = ("causal", "offline")
 SAMPLE_S = 0.5
 WARMUP_S = 60.0
+LEVEL_S = 10.0  # sustained growth: RSS medians over this many seconds (a spike of a second or two does not count)
 FPS = 30.0
 MAX_RATIO = 1.5  # issue 20: offline replay at most 1.5x the causal replay's time ...
 MAX_GROWTH_MB = 100.0  # ... within flat memory
@@ -129,7 +130,8 @@ def _watched(command: list[str], what: str) -> tuple[float, list[tuple[float, fl
 
 def rss_growth(wall: float, samples: list[tuple[float, float]]) -> dict[str, Any]:
     """Peak and growth after the warm-up (see :func:`warmup_s`) of one run's RSS samples ``[(t s, MB)]``:
-    growth = the peak after the warm-up minus the first sample after it (None without samples after it)."""
+    growth = the peak after the warm-up minus the first sample after it (None without samples after it);
+    sustained growth: the same with medians over :data:`LEVEL_S` seconds (the highest minus the first)."""
     warmup = warmup_s(wall)
     after = [rss for t, rss in samples if t >= warmup]
     result: dict[str, Any] = {
@@ -140,8 +142,11 @@ def rss_growth(wall: float, samples: list[tuple[float, float]]) -> dict[str, Any
     if after:
         result.update(rss_after_warmup_mb=after[0], peak_after_warmup_mb=max(after), final_mb=after[-1])
         result["growth_mb"] = max(after) - after[0]
+        window = max(1, int(round(LEVEL_S / SAMPLE_S)))
+        levels = [float(np.median(after[i : i + window])) for i in range(0, max(1, len(after) - window + 1))]
+        result["sustained_growth_mb"] = max(levels) - levels[0]
     else:
-        result["growth_mb"] = None
+        result["growth_mb"] = result["sustained_growth_mb"] = None
     return result
 
 
@@ -189,9 +194,12 @@ def _long_replay(tmp: Path, minutes: float, runs: int, step: Callable[[str], Non
             step(f"{mode} replay {index + 1} of {runs}")
             run = _replay(clip["args"], tmp / f"{mode}_{index}", mode)
             done[mode].append(run)
-            # an interrupted benchmark would leave nothing: keep what each run wrote small
-            for name in ("recording.rrd", "poses.csv"):
-                (tmp / f"{mode}_{index}" / name).unlink(missing_ok=True)
+            # the temporary folder holds six runs: keep only what the report reads (a recording's parts
+            # each carry the whole source video again)
+            written = tmp / f"{mode}_{index}"
+            run["recording_mb"] = sum(part.stat().st_size for part in written.glob("recording*.rrd")) / 1e6
+            for path in [*written.glob("recording*.rrd"), written / "poses.csv"]:
+                path.unlink(missing_ok=True)
     result: dict[str, Any] = {key: value for key, value in clip.items() if key not in ("video", "args")}
     result["runs"] = runs
     for mode in MODES:
@@ -201,6 +209,7 @@ def _long_replay(tmp: Path, minutes: float, runs: int, step: Callable[[str], Non
             "wall_s": walls,
             "wall_median_s": _median(walls),
             "growth_mb": growths,
+            "sustained_growth_mb": [run["memory"].get("sustained_growth_mb") for run in done[mode]],
             "growth_median_mb": _median(growths),
             "growth_max_mb": max(growths, default=None),
             "runs": done[mode],
@@ -329,7 +338,8 @@ def _long_lines(long: dict[str, Any], verdicts: dict[str, Any]) -> list[str]:
         f"{long['runs']} run(s) per mode, taking turns (causal, offline, causal, ...). Wall time: the whole "
         f"process (start-up included). RSS sampled every {SAMPLE_S:g} s from `/proc/<pid>/status`; growth = "
         f"peak after the warm-up minus the RSS at its end (warm-up {WARMUP_S:g} s, or a quarter of the run when "
-        "shorter).",
+        f"shorter); sustained growth: the same over {LEVEL_S:g} s medians of the samples (spikes of a second or "
+        "two left out).",
         "",
         "| | causal (`--causal`) | offline (default) |",
         "|---|---|---|",
@@ -339,17 +349,31 @@ def _long_lines(long: dict[str, Any], verdicts: dict[str, Any]) -> list[str]:
         f"{fmt(offline['wall_median_s'], 1)} ({_fps(long, offline)}) |",
         f"| RSS growth after warm-up MB per run | {', '.join(fmt(x, 1) for x in causal['growth_mb'])} | "
         f"{', '.join(fmt(x, 1) for x in offline['growth_mb'])} |",
+        f"| sustained growth MB per run ({LEVEL_S:g} s medians) | "
+        f"{', '.join(fmt(x, 1) for x in causal.get('sustained_growth_mb', []))} | "
+        f"{', '.join(fmt(x, 1) for x in offline.get('sustained_growth_mb', []))} |",
         f"| peak RSS MB per run | {', '.join(fmt(r['memory']['peak_mb'], 0) for r in causal['runs'])} | "
         f"{', '.join(fmt(r['memory']['peak_mb'], 0) for r in offline['runs'])} |",
         f"| spool MB (`summary.json`) | - | {', '.join(fmt(x, 1) for x in spool)} |",
+        f"| recording MB (all parts) | {_recording(causal)} | {_recording(offline)} |",
         "",
         f"- **Offline / causal wall time: {fmt(long['ratio_offline_over_causal'])}x** (median / median; "
         f"target <= {MAX_RATIO:g}x): {_verdict(verdicts.get('time_ratio'))}.",
         f"- **Offline RSS growth: {fmt(offline['growth_max_mb'], 1)} MB** (the largest of its runs; target < "
         f"{MAX_GROWTH_MB:g} MB): {_verdict(verdicts.get('offline_growth'))}; causal: "
-        f"{fmt(causal['growth_max_mb'], 1)} MB.",
+        f"{fmt(causal['growth_max_mb'], 1)} MB. Sustained growth ({LEVEL_S:g} s medians, the largest of the "
+        f"runs): offline {fmt(_largest(offline.get('sustained_growth_mb')), 1)} MB, causal "
+        f"{fmt(_largest(causal.get('sustained_growth_mb')), 1)} MB.",
     ]
     return lines + _state_lines(causal["runs"][0], offline["runs"][0])
+
+
+def _largest(values: list[float | None] | None) -> float | None:
+    return max((v for v in values or [] if v is not None), default=None)
+
+
+def _recording(mode: dict[str, Any]) -> str:
+    return ", ".join(fmt(run.get("recording_mb"), 0) for run in mode["runs"])
 
 
 def _fps(long: dict[str, Any], mode: dict[str, Any]) -> str:

@@ -28,7 +28,8 @@ def _run(mode: str, wall: float, growth: float, states: dict, causal_states: dic
         "mode": mode,
         "wall_s": wall,
         "frames": 18000,
-        "memory": {"warmup_s": 60.0, "peak_mb": 400.0 + growth, "growth_mb": growth},
+        "memory": {"warmup_s": 60.0, "peak_mb": 400.0 + growth, "growth_mb": growth, "sustained_growth_mb": 5.0},
+        "recording_mb": 1700.0,
         "offline": {"done": ["track", "decide", "write"], "frames": 18000, "spool_mb": 123.4}
         if mode == "offline"
         else None,
@@ -55,6 +56,7 @@ def _results(offline_walls=(420.0, 430.0, 440.0), offline_growth=40.0, offline_r
     for mode, runs in (("causal", causal), ("offline", offline)):
         walls, growths = [r["wall_s"] for r in runs], [r["memory"]["growth_mb"] for r in runs]
         long[mode] = {"wall_s": walls, "wall_median_s": sorted(walls)[1], "growth_mb": growths,
+                      "sustained_growth_mb": [r["memory"]["sustained_growth_mb"] for r in runs],
                       "growth_median_mb": growths[1], "growth_max_mb": max(growths), "runs": runs}  # fmt: skip
     board = {"command": "ar-anchor replay chessboard.avi --camera intrinsics.yml"}
     for mode, rotation in (("causal", 0.25), ("offline", offline_rotation)):
@@ -83,6 +85,9 @@ def test_the_report_shows_ratio_memory_spool_states_and_scores_of_both_modes():
     assert "**Offline / causal wall time: 1.39x**" in text and "target <= 1.5x): **pass**" in text
     assert "**Offline RSS growth: 40.0 MB**" in text and "causal: 20.0 MB" in text
     assert "| spool MB (`summary.json`) | - | 123.4, 123.4, 123.4 |" in text
+    assert "| sustained growth MB per run (10 s medians) | 5.0, 5.0, 5.0 | 5.0, 5.0, 5.0 |" in text
+    assert "Sustained growth (10 s medians, the largest of the runs): offline 5.0 MB, causal 5.0 MB." in text
+    assert "| recording MB (all parts) | 1700, 1700, 1700 | 1700, 1700, 1700 |" in text
     # the states: causal run, the offline run's live filter, the offline answer; zero-only states left out
     assert "| ambiguous | 5000 | 5000 | 900 |" in text
     assert "| interpolated | - | - | 120 |" in text and "| lost | 20 | 20 | - |" in text
@@ -119,6 +124,11 @@ def test_rss_growth_is_the_peak_after_the_warmup_minus_the_size_at_its_end():
     assert memory["rss_after_warmup_mb"] == 300.0 and memory["peak_after_warmup_mb"] == 380.0
     assert memory["growth_mb"] == pytest.approx(80.0) and memory["peak_mb"] == 380.0
     assert memory["final_mb"] == 380.0 and memory["samples"] == 13
+    # a spike of a second or two is no sustained growth; a level that stays up is
+    flat = [(60.0 + 0.5 * i, 300.0 + (400.0 if i in (40, 41) else 0.0)) for i in range(120)]
+    assert rss_growth(600.0, flat)["growth_mb"] == 400.0 and rss_growth(600.0, flat)["sustained_growth_mb"] == 0.0
+    step = [(60.0 + 0.5 * i, 300.0 + (120.0 if i >= 60 else 0.0)) for i in range(120)]
+    assert rss_growth(600.0, step)["sustained_growth_mb"] == 120.0
     assert rss_growth(600.0, samples[:10])["growth_mb"] is None  # nothing after the warm-up
 
 
@@ -137,6 +147,7 @@ def test_bench_offline_on_a_three_second_clip_writes_both_modes(tmp_path, monkey
     assert sum(offline["causal_states"].values()) == sum(offline["states"].values()) == sum(causal["states"].values())
     assert offline["causal_states"] == causal["states"]  # the live filter inside the offline run = --causal
     assert causal["memory"]["samples"] > 0 and long["ratio_offline_over_causal"] > 0
+    assert causal["recording_mb"] > 0 and offline["recording_mb"] > 0
     assert "skipped" in results["chessboard"] and results["verdicts"]["chessboard"] is None
     text = (out / "offline.md").read_text()
     assert "ar-anchor bench offline --quick --minutes 0.05" in text
