@@ -274,7 +274,8 @@ class RecordingConfig:
     jpeg_quality: int = key(80, "JPEG quality of logged images", in_range(1, 100))
     part_minutes: float = key(
         0.5,
-        "long runs: recording.rrd, recording.part2.rrd, ... each this long (0: one file): rerun's file writer "
+        "long runs: recording.rrd, recording.part2.rrd, ... each this long, in wall time or the frames' own "
+        "(0: one file): rerun's file writer "
         "grows in memory until its file closes (about 1 MB/s at 1080p; rerun issue #12623). Open the parts "
         "together: rerun recording*.rrd",
         in_range(0.0, 1e6),

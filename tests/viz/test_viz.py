@@ -492,3 +492,22 @@ def test_an_offline_result_shows_the_live_filter_s_pose_beside_its_own(tmp_path,
     assert added["metrics/offline_vs_causal_deg/marker_1"] == pytest.approx([0.0, 0.0], abs=1e-6)
     assert added["metrics/offline_vs_causal_deg/marker_2"] == pytest.approx([30.0])
     verify(path)
+
+
+def test_a_replay_faster_than_real_time_starts_its_parts_by_the_frames_own_time(tmp_path, camera):
+    # given a recording in parts of 0.5 min, fed 2 minutes of frames (30 fps) in far less wall time
+    settings = RecordingConfig(image_every=0, part_minutes=0.5)
+    recorder = RerunRecorder(tmp_path / "recording.rrd", camera=camera, settings=settings)
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    for index in range(0, 3600, 10):
+        recorder.log_frame(Frame(image, index, index * 33_333_333), _result(index, ["marker:1"], camera))
+    recorder.close()
+    # then a new file starts every 30 s of the frames' time: four parts, each complete
+    assert [part.name for part in recorder.parts] == [
+        "recording.rrd",
+        "recording.part2.rrd",
+        "recording.part3.rrd",
+        "recording.part4.rrd",
+    ]
+    for part in recorder.parts:
+        verify(part)
