@@ -21,6 +21,7 @@ ends the process at once (exit 130): ``summary.json`` written, the outputs still
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import time
@@ -284,7 +285,7 @@ def _track_offline(
         passes["done"].append("decide")
         bar = offline.progress("write") if offline.progress is not None else None
         passes["writing"] = True
-        with offline.reopen() as again:
+        with _said_once(), offline.reopen() as again:
             written = _write_offline(
                 again, records, offline_results(records.results, plan), outputs, guard, options, bar
             )
@@ -330,6 +331,19 @@ def _write_offline(
     finally:
         feed.close()
     return written
+
+
+@contextmanager
+def _said_once() -> Iterator[None]:
+    """The source decoded a second time (an offline replay's write pass) says nothing below an error: its
+    warnings (a damaged image, a file's quirks) were said in the first pass."""
+    sources = logging.getLogger("ar_anchor.sources")
+    level = sources.level
+    sources.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        sources.setLevel(level)
 
 
 def _close_progress(progress: object) -> None:
