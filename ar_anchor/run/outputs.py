@@ -97,9 +97,10 @@ def is_disk_full(err: BaseException) -> bool:
 
 
 class DiskFullError(OutputError):
-    """An output could not be written because the disk (or the quota) is full; ``path``: that file."""
+    """An output could not be written because the disk (or the quota) is full; ``path``: that file (None
+    when the error did not say which: raised by the output thread's writer, say)."""
 
-    def __init__(self, message: str, path: Path) -> None:
+    def __init__(self, message: str, path: Path | None) -> None:
         super().__init__(message)
         self.path = path
 

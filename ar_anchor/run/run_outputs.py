@@ -219,7 +219,7 @@ class RunOutputs:
         """The first full-disk failure, naming the files it left incomplete."""
         first = self._first_failure
         assert first is not None
-        others = [name for name in self._incomplete if name != first.path.name]
+        others = [name for name in self._incomplete if first.path is None or name != first.path.name]
         if not others:
             return first
         return DiskFullError(f"{first}; also incomplete: {', '.join(others)}", first.path)
@@ -277,7 +277,8 @@ class RunOutputs:
                     self._stage.skipped,
                 )
         if self._first_failure is not None:
-            counts["incomplete"] = [self._first_failure.path.name, *self._incomplete]
+            first = self._first_failure.path
+            counts["incomplete"] = [first.name if first is not None else "an output", *self._incomplete]
         counts.update(extras)
         data = self.summary.as_dict(wall_time_s, status=status, image_logging=self.image_logging, **counts)
         try:

@@ -175,3 +175,22 @@ def test_a_run_that_fills_a_real_disk_loses_nothing_written(small_disk):
     frames = {row[0] for row in _rows(out / "poses.csv")[1:]}
     assert len(frames) >= summary["frames"] > 0
     assert not (out / "summary.json.tmp").exists() and not (out / LOCK_NAME).exists()
+
+
+def test_a_full_disk_that_names_no_file_is_still_reported_and_summarised(tmp_path):
+    # given a run's outputs, and a full-disk error from a writer that does not say which file it was
+    # (seen once under load in CI: the run ended with an internal error instead of the disk-full line)
+    from ar_anchor.errors import OutputError
+    from ar_anchor.run.options import RunOptions
+    from ar_anchor.run.outputs import DiskFullError
+    from ar_anchor.run.run_outputs import RunOutputs
+
+    outputs = RunOutputs(tmp_path, RunOptions())
+    raised = outputs._first(OutputError("cannot write: No space left on device"))
+    outputs._first(OutputError("No space left on device"), tmp_path / "poses.csv")  # a second file refused
+    # then it is the run's first failure, its message says so, and the summary lists what is incomplete
+    assert "No space left on device" in str(outputs._failure_message())
+    with pytest.raises(DiskFullError, match="also incomplete: poses.csv"):
+        outputs.write_summary("failed", 1.0, {})
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert raised is outputs._first_failure and summary["incomplete"] == ["an output", "poses.csv"]
