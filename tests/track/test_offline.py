@@ -96,31 +96,25 @@ def test_an_approaching_marker_is_tracked_and_right_from_its_first_frame_offline
     assert max(_error(offline[i], truths[i], M0) for i in seen) < 10.0
 
 
-def test_an_undecidable_far_static_marker_stays_ambiguous_offline():
-    scene = SyntheticScene(
-        camera=CAMERA,
-        markers=(PlacedMarker(0, 0.04, Pose.identity()),),
-        trajectory=Trajectory(kind="static", near_m=3.5, azimuth_deg=0, elevation_deg=0, roll_deg=0),
-        frames=40,
-        noise_sigma=2.0,
-        seed=5,
+def _static(length_m: float, distance_m: float, azimuth_deg: float, frames: int, seed: int) -> list[FrameResult]:
+    """The causal results of a still camera looking at one marker (sensor noise 2 grey levels)."""
+    trajectory = Trajectory(
+        kind="static", near_m=distance_m, azimuth_deg=azimuth_deg, elevation_deg=azimuth_deg / 4, roll_deg=0
     )
-    results, _ = _tracked(scene, 0.04)
+    markers = (PlacedMarker(0, length_m, Pose.identity()),)
+    scene = SyntheticScene(CAMERA, markers=markers, trajectory=trajectory, frames=frames, noise_sigma=2.0, seed=seed)
+    return _tracked(scene, length_m)[0]
+
+
+def test_an_undecidable_far_static_marker_stays_ambiguous_offline():
+    results = _static(0.04, 3.5, 0.0, frames=40, seed=5)
     offline = smooth(results, TrackerConfig())
     states = [r.targets[M0].state for r in offline if M0 in r.targets]
     assert len(states) >= 30 and set(states) == {TrackState.AMBIGUOUS}
 
 
 def test_offline_poses_are_no_noisier_than_the_live_filter_s_on_a_static_marker():
-    scene = SyntheticScene(
-        camera=CAMERA,
-        markers=(PlacedMarker(0, 0.06, Pose.identity()),),
-        trajectory=Trajectory(kind="static", near_m=1.0, azimuth_deg=20, elevation_deg=5, roll_deg=0),
-        frames=60,
-        noise_sigma=2.0,
-        seed=6,
-    )
-    results, _ = _tracked(scene, 0.06)
+    results = _static(0.06, 1.0, 20.0, frames=60, seed=6)
     offline = smooth(results, TrackerConfig())
 
     def jitter(frames: list[FrameResult]) -> float:
