@@ -54,8 +54,7 @@ class Bridge:
     def __init__(self, plan: OfflinePlan) -> None:
         self.plan = plan
         self.limit_ns = int(plan.config.interpolate_s * 1e9)
-        self.last: dict[TargetId, tuple[int, TargetResult]] = {}  # name -> (its last measured frame's ns, result)
-        self.last_position: dict[TargetId, int] = {}  # name -> its last measured frame's position
+        self.last: dict[TargetId, tuple[int, TargetResult]] = {}  # name -> (its last measured frame, result)
         # name -> the frame position that ends its current gap (None: none within reach), and whether the
         # motion through it is steady enough to interpolate in time
         self.following: dict[TargetId, tuple[int | None, bool]] = {}
@@ -86,8 +85,7 @@ class Bridge:
             branch=branch,
             events=events,
         )
-        self.last[name] = (int(self.plan.timestamps_ns[position]), target)
-        self.last_position[name] = position
+        self.last[name] = (position, target)
         self.following.pop(name, None)
         return target
 
@@ -97,19 +95,20 @@ class Bridge:
         for name in list(self.last):
             if name in measured:
                 continue
-            then_ns, before = self.last[name]
+            then, before = self.last[name]
+            then_ns = int(self.plan.timestamps_ns[then])
             if now_ns - then_ns > self.limit_ns:
                 del self.last[name]
                 self.following.pop(name, None)
                 continue
             if name not in self.following:
-                self.following[name] = self._next_measured(name, self.last_position[name], then_ns)
+                self.following[name] = self._next_measured(name, then, then_ns)
             after_position, steady = self.following[name]
             if after_position is None:
                 continue
             after_ns = int(self.plan.timestamps_ns[after_position])
             fraction = (now_ns - then_ns) / max(after_ns - then_ns, 1)
-            pose = self._via_companion(name, self.last_position[name], after_position, position, fraction)
+            pose = self._via_companion(name, then, after_position, position, fraction)
             if pose is None and steady:
                 pose = _interpolated(before.pose, self._pose(name, after_position), fraction)
             if pose is not None:
