@@ -40,7 +40,7 @@ from ..config import demo_config
 from ..config.document import demo_toml
 from ..synthetic import Trajectory, demo_scene
 from .real.scoring import read_poses_csv, score_rigid_sheet
-from .report import fmt, load_average, machine_info, write_json
+from .report import fmt, load_average, machine_info, report_head, write_json
 from .run import _cli, _encode_scene, _rss_mb
 from .speed.real_clip import chessboard_files
 
@@ -297,13 +297,11 @@ def _verdict(value: bool | None) -> str:
 def offline_markdown(results: dict[str, Any], command: str) -> str:
     """``offline.md`` from :func:`run_offline_benchmark`'s results: the long replay's time and memory, the
     states, chessboard.avi's scores, the verdicts and the machine."""
-    lines = [
-        "# Offline replay (issue 20) against the causal one: cost, memory, real video",
-        "",
+    lines = report_head(
+        "Offline replay (issue 20) against the causal one: cost, memory, real video",
         f"Produced by `{command}`: real `ar-anchor replay` processes (see `ar_anchor/bench/offline.py`).",
-    ]
-    for note in results.get("notes", []):
-        lines += ["", f"Note: {note}."]
+        results.get("notes", []),
+    )
     verdicts = results.get("verdicts", {})
     if results.get("long"):
         lines += _long_lines(results["long"], verdicts)

@@ -24,6 +24,7 @@ __all__ = [
     "fmt_sig",
     "load_average",
     "machine_info",
+    "report_head",
     "strict_json",
     "write_json",
 ]
@@ -86,6 +87,15 @@ def machine_info() -> dict[str, Any]:
         "opencv_threads": cv2.getNumThreads(),
         "load_average_start": load_average(),
     }
+
+
+def report_head(title: str, produced: str, notes: Any = ()) -> list[str]:
+    """A benchmark report's first lines: its ``# title``, the line saying what produced it, and one
+    ``Note:`` paragraph per note (the run's skipped parts and caveats)."""
+    lines = [f"# {title}", "", produced]
+    for note in notes:
+        lines += ["", f"Note: {note}."]
+    return lines
 
 
 def fmt(value: Any, digits: int = 2) -> str:

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import CameraModel
-from .report import fmt, load_average, machine_info
+from .report import fmt, load_average, machine_info, report_head
 from .speed import render_clip, speed_scene
 from .speed.real_clip import chessboard_files
 from .speed.scenes import FIFTY_MARKER_M, FIFTY_SIZE, fifty_markers_scene
@@ -333,13 +333,11 @@ def _live_parts(
 def run_markdown(results: dict[str, Any], command: str) -> str:
     """``run.md`` from :func:`run_run_benchmark`'s results: replay fps (and against the plain loop), the real
     and the 50-marker replays, live latency per stage, memory, machine (the parts that ran)."""
-    lines = [
-        "# End-to-end runs: replay throughput, live latency, memory",
-        "",
+    lines = report_head(
+        "End-to-end runs: replay throughput, live latency, memory",
         f"Produced by `{command}`: real `ar-anchor` processes, default settings (see `ar_anchor/bench/run.py`).",
-    ]
-    for note in results.get("notes", []):
-        lines += ["", f"Note: {note}."]
+        results.get("notes", []),
+    )
     if "replay" in results:
         lines += _replay_lines(results["replay"], results.get("replay_vs_plain"))
     if "chessboard" in results and "skipped" not in results["chessboard"]:
