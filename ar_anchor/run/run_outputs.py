@@ -173,7 +173,11 @@ class RunOutputs:
                 self._summary_file.release_slack()  # room for the other files to finish in
             elif err is not self._first_failure:
                 where = getattr(err, "path", None) or path
-                if where is not None and where.name not in self._incomplete:
+                if where is not None and self._first_failure.path is None:
+                    # the first failure named no file (the output thread's writer): the first one that does
+                    # is the one to name (under load the recording's flush fails before its close says so)
+                    self._first_failure = err if isinstance(err, DiskFullError) else DiskFullError(str(err), where)
+                elif where is not None and where.name not in self._incomplete:
                     self._incomplete.append(where.name)
         return self._first_failure or err
 

@@ -186,11 +186,14 @@ def test_a_full_disk_that_names_no_file_is_still_reported_and_summarised(tmp_pat
     from ar_anchor.run.run_outputs import RunOutputs
 
     outputs = RunOutputs(tmp_path, RunOptions())
-    raised = outputs._first(OutputError("cannot write: No space left on device"))
-    outputs._first(OutputError("No space left on device"), tmp_path / "poses.csv")  # a second file refused
-    # then it is the run's first failure, its message says so, and the summary lists what is incomplete
-    assert "No space left on device" in str(outputs._failure_message())
-    with pytest.raises(DiskFullError, match="also incomplete: poses.csv"):
+    outputs._first(OutputError("cannot write: No space left on device"))
+    assert "No space left on device" in str(outputs._failure_message())  # reported as it is, no crash
+    # when the next failure names its file (the recording's close, after its flush failed)
+    outputs._first(OutputError("recording.rrd: No space left on device"), tmp_path / "recording.rrd")
+    outputs._first(OutputError("No space left on device"), tmp_path / "poses.csv")  # and another file
+    # then the run's failure names that file, and the summary lists what is incomplete, the first file first
+    assert outputs._first_failure.path == tmp_path / "recording.rrd"
+    with pytest.raises(DiskFullError, match="recording.rrd.*also incomplete: poses.csv"):
         outputs.write_summary("failed", 1.0, {})
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert raised is outputs._first_failure and summary["incomplete"] == ["an output", "poses.csv"]
+    assert summary["incomplete"] == ["recording.rrd", "poses.csv"]
