@@ -43,11 +43,11 @@ import numpy as np
 from ..config import FilterConfig, TrackerConfig
 from ..geometry import Pose, angle_between_deg
 from ..targets import TargetId, TrackState
-from .filtering import KalmanBatch, TargetTrack, TrackUpdate, so3_exp, so3_log, unit_covariances_of
+from .filtering import TargetTrack, TrackUpdate, so3_exp, so3_log
 from .filtering.track import EVIDENCE_DOUBTS
 from .gaps import Bridge
 from .spool import FrameStore, SpoolStore
-from .tracker import FrameResult, TargetResult, run_filter_steps
+from .tracker import FrameResult, TargetResult, update_tracks
 
 __all__ = ["FrameStore", "OfflinePlan", "SpoolStore", "decide", "offline_results", "smooth"]
 
@@ -109,40 +109,14 @@ def decide(
         if not result.repeated:  # (a repeated frame is no new measurement: it repeats its answer)
             if end_ns is None:
                 end_ns = result.timestamp_ns
-            updates = _backward_step(tracks, result, end_ns - result.timestamp_ns, config)
-            decided[position] = _decide_frame(result, updates)
+            assert result.camera is not None, "a FrameResult from Tracker.process carries its camera"
+            updates = update_tracks(
+                tracks, result.measurements, end_ns - result.timestamp_ns, result.camera, result.blurred, config
+            )
+            decided[position] = _decide_frame(result, {k: u for k, u in updates.items() if u is not None})
         if progress is not None:
             progress(done, count)
     return OfflinePlan(config, timestamps, decided, blurred, detail, measured)
-
-
-def _backward_step(
-    tracks: dict[TargetId, TargetTrack], result: FrameResult, reversed_ns: int, config: FilterConfig
-) -> dict[TargetId, TrackUpdate]:
-    """One frame of the backward pass (its time ``reversed_ns``: counted back from the last frame), all
-    targets' Kalman steps batched as :meth:`Tracker._filter <ar_anchor.track.tracker.Tracker._filter>` does."""
-    measured = result.measurements
-    camera = result.camera
-    assert camera is not None, "a FrameResult from Tracker.process carries its camera"
-    unit = unit_covariances_of(list(measured.values()), camera)
-    batch = KalmanBatch()
-    steps = {}
-    for name in TargetId.ordered(set(measured) | set(tracks)):
-        solved = measured.get(name)
-        track = tracks.get(name)
-        if track is None:
-            assert solved is not None
-            track = tracks[name] = TargetTrack(config, solved.points_in_target)
-        steps[name] = track.update_steps(
-            solved, reversed_ns, camera, blurred=result.blurred, unit_covariances=unit, batch=batch
-        )
-    updates = run_filter_steps(steps, batch)
-    for name, update in list(updates.items()):
-        if update is None:
-            if not tracks[name].alive:
-                del tracks[name]
-            del updates[name]
-    return updates
 
 
 def _chosen(hypotheses: Sequence[Pose], pose: Pose) -> int:

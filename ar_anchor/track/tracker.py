@@ -21,12 +21,20 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel
-from ..config import TrackerConfig
+from ..config import FilterConfig, TrackerConfig
 from ..geometry import Pose, marker_corners_in_marker
 from ..sources.base import Frame
 from ..targets import TargetId, TrackState
 from .detection import FAST_MIN_SIDE_PX, Detector, MarkerDetections, mean_side, plan_regions
-from .filtering import KalmanBatch, TargetTrack, TrackEvent, decisive, margin_scale, unit_covariances_of
+from .filtering import (
+    KalmanBatch,
+    TargetTrack,
+    TrackEvent,
+    TrackUpdate,
+    decisive,
+    margin_scale,
+    unit_covariances_of,
+)
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
@@ -380,33 +388,15 @@ class Tracker:
     def _filter(
         self, measured: dict[TargetId, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
     ) -> dict[TargetId, TargetResult]:
-        """Every track's update, their numeric steps taken for all targets at once: the pose covariances
-        (:func:`~.filtering.unit_covariances_of`) and the smoothers' Kalman steps (each track's update runs
-        as steps, :meth:`~.filtering.TargetTrack.update_steps`, paused while a :class:`KalmanBatch` takes
-        the steps they queued)."""
+        """Every track's update (:func:`update_tracks`), as each target's :class:`TargetResult`."""
         targets: dict[TargetId, TargetResult] = {}
-        unit = unit_covariances_of(list(measured.values()), camera)
-        batch = KalmanBatch()
-        names = TargetId.ordered(set(measured) | set(self.tracks))
-        steps = {}
-        for name in names:
-            solved = measured.get(name)
-            track = self.tracks.get(name)
-            if track is None:
-                assert solved is not None
-                track = self.tracks[name] = TargetTrack(self.config.filter, solved.points_in_target)
-            steps[name] = track.update_steps(
-                solved, timestamp_ns, camera, blurred=blurred, unit_covariances=unit, batch=batch
-            )
-        updates = run_filter_steps(steps, batch)
-        for name in names:
-            solved, track, update = measured.get(name), self.tracks[name], updates[name]
+        updates = update_tracks(self.tracks, measured, timestamp_ns, camera, blurred, self.config.filter)
+        for name, update in updates.items():
             for event in update.events if update is not None else ():
                 log.info("%s: %s", name, event.message)
             if update is None:  # nothing to publish: a gap too long to predict through, or lost for good
-                if not track.alive:
-                    del self.tracks[name]
                 continue
+            solved = measured.get(name)
             targets[name] = self._result(
                 name,
                 update.state,
@@ -502,6 +492,39 @@ def _every_4th_pixel(image: np.ndarray) -> np.ndarray:
     if height % 4 or width % 4 or height < 4 or width < 4:
         return np.ascontiguousarray(image[::4, ::4])
     return cv2.resize(image, (width // 4, height // 4), interpolation=cv2.INTER_NEAREST)
+
+
+def update_tracks(
+    tracks: dict[TargetId, TargetTrack],
+    measured: dict[TargetId, MarkerPose | BoardPose],
+    timestamp_ns: int,
+    camera: CameraModel,
+    blurred: bool,
+    config: FilterConfig,
+) -> dict[TargetId, TrackUpdate | None]:
+    """Every track's update for one frame (a track started for a target measured for the first time; one
+    lost for good removed), in :class:`TargetId` order, the numeric steps taken for all targets at once:
+    the pose covariances (:func:`~.filtering.unit_covariances_of`) and the smoothers' Kalman steps (each
+    track's update runs as steps, :meth:`~.filtering.TargetTrack.update_steps`, paused while a
+    :class:`KalmanBatch` takes the steps they queued). The live tracker's, and the offline replay's
+    backward pass's (:mod:`ar_anchor.track.offline`)."""
+    unit = unit_covariances_of(list(measured.values()), camera)
+    batch = KalmanBatch()
+    steps = {}
+    for name in TargetId.ordered(set(measured) | set(tracks)):
+        solved = measured.get(name)
+        track = tracks.get(name)
+        if track is None:
+            assert solved is not None
+            track = tracks[name] = TargetTrack(config, solved.points_in_target)
+        steps[name] = track.update_steps(
+            solved, timestamp_ns, camera, blurred=blurred, unit_covariances=unit, batch=batch
+        )
+    updates = run_filter_steps(steps, batch)
+    for name, update in updates.items():
+        if update is None and not tracks[name].alive:
+            del tracks[name]
+    return {name: updates[name] for name in steps}
 
 
 def run_filter_steps(steps: dict[TargetId, Generator[None, None, Any]], batch: KalmanBatch) -> dict[TargetId, Any]:
