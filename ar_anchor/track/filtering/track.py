@@ -4,7 +4,6 @@ the pose to publish and its state (see the package doc)."""
 from __future__ import annotations
 
 import collections
-import dataclasses
 import math
 from collections.abc import Generator, Mapping
 from dataclasses import dataclass
@@ -146,8 +145,8 @@ class TargetTrack:
             assigned[1].pose if assigned[1] is not None else None,
         )
         self._was_tracked = vouched
-        update = self._result(TrackState.TRACKED if vouched else TrackState.AMBIGUOUS, pose, hypotheses, events)
-        update = dataclasses.replace(update, doubts=tuple(doubts))
+        state = TrackState.TRACKED if vouched else TrackState.AMBIGUOUS
+        update = self._result(state, pose, hypotheses, events, tuple(doubts))
         self._output = pose
         return update
 
@@ -397,7 +396,12 @@ class TargetTrack:
         return math.degrees(3.0 * sigma) > self.config.flip_angle_deg
 
     def _result(
-        self, state: TrackState, pose: Pose, hypotheses: tuple[Pose | None, Pose | None], events: list[TrackEvent]
+        self,
+        state: TrackState,
+        pose: Pose,
+        hypotheses: tuple[Pose | None, Pose | None],
+        events: list[TrackEvent],
+        doubts: tuple[str, ...] = (),
     ) -> TrackUpdate:
         return TrackUpdate(
             state,
@@ -408,6 +412,7 @@ class TargetTrack:
             hypotheses,
             tuple(events),
             self.run_frames,
+            doubts,
         )
 
 
