@@ -1,13 +1,16 @@
 """Ctrl-C and SIGTERM during a run (:class:`InterruptGuard`): never in the middle of one frame's outputs,
-held while the outputs close, and a second one while they close ends the process at once.
+held while the outputs close, and a second one ends the process at once.
 
 Closing can block in native code for a long time (a viewer that stopped reading holds rerun's flush and
 disconnect for as long as it stays silent), and Python runs a signal handler only between bytecodes of
-the main thread, which is then stuck. So while the outputs close, the signals are also watched from a
-thread of their own, through :func:`signal.set_wakeup_fd` (the interpreter writes each signal's number
-there the moment it arrives): the second Ctrl-C of a run (or the second during a normal closing) calls
-the run's ``abandon`` (which writes ``summary.json`` and names the outputs that may be incomplete), says
-so in one line on stderr, and ends the process with exit code 130.
+the main thread, which is then stuck; two signals that arrive while it is stuck reach the handler once.
+So the signals are counted, for the whole run, by a thread of their own, through
+:func:`signal.set_wakeup_fd` (the interpreter writes each signal's number there the moment it arrives):
+at the run's second signal (the first may have been held while a frame's outputs were written, or while
+the main thread waited for the output thread), the thread waits for the closing to begin (at most
+:data:`_GRACE_S`: a main thread that never gets there is stuck), calls the run's ``abandon`` (which
+writes ``summary.json`` and names the outputs that may be incomplete), says so in one line on stderr,
+and ends the process with exit code 130.
 """
 
 from __future__ import annotations
@@ -29,15 +32,17 @@ __all__ = ["InterruptGuard"]
 log = logging.getLogger(__name__)
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_GRACE_S = 2.0  # after the second signal, how long the main thread has to reach the closing
 
 
 class InterruptGuard:
     """Turns SIGINT/SIGTERM into KeyboardInterrupt, but never in the middle of writing one frame's
     outputs: a signal that arrives there is held until the frame is complete, so ``poses.csv``,
     the recording and ``summary.json`` always agree on the last frame. Once :meth:`hold` is called
-    (closing), signals wait until the guard exits, except a second one, which calls ``abandon()`` (it
-    returns the names of the outputs that may be incomplete) and ends the process (exit 130).
-    Main thread only; elsewhere it does nothing."""
+    (closing), signals wait until the guard exits. The run's second signal (counted from the guard's
+    entry, wherever the first was held) calls ``abandon()`` once the closing has begun (it returns the names
+    of the outputs that may be incomplete) and ends the process (exit 130). Main thread only; elsewhere it
+    does nothing."""
 
     def __init__(self, abandon: Callable[[], list[str]] | None = None, out_dir: Path | None = None) -> None:
         self._out_dir = out_dir  # named in the last line, when a second signal ends the process
@@ -45,7 +50,7 @@ class InterruptGuard:
         self._critical = False
         self._pending: int | None = None
         self._abandon = abandon
-        self._signals = 0  # signals seen by the handler before the closing
+        self._closing = threading.Event()  # hold() was called
         self._watch: tuple[socket.socket, socket.socket, int] | None = None
 
     def __enter__(self) -> InterruptGuard:
@@ -53,6 +58,8 @@ class InterruptGuard:
             for signum in _SIGNALS:
                 if signal.getsignal(signum) is not signal.SIG_IGN:  # ignored on purpose (a background job)
                     self._previous[signum] = signal.signal(signum, self._handle)
+        if self._previous and self._abandon is not None:
+            self._start_watching()
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
@@ -67,12 +74,9 @@ class InterruptGuard:
         """From now on (closing the outputs), hold signals until the guard exits: a late Ctrl-C must not
         cut the flush of a recording or the last frames of a video; a second one ends the process."""
         self._critical = True
-        if self._previous and self._abandon is not None and self._watch is None:
-            self._start_watching()
+        self._closing.set()
 
     def _handle(self, signum: int, _frame: object) -> None:
-        if not self._watch:
-            self._signals += 1
         if self._critical:
             self._pending = signum
             return
@@ -90,7 +94,7 @@ class InterruptGuard:
             signum, self._pending = self._pending, None
             raise KeyboardInterrupt(f"signal {signum}")
 
-    # ------------------------------------------------------------------ the closing, watched
+    # ------------------------------------------------------------------ the signals, counted
     def _start_watching(self) -> None:
         reader, writer = socket.socketpair()
         writer.setblocking(False)
@@ -101,8 +105,7 @@ class InterruptGuard:
             writer.close()
             return
         self._watch = (reader, writer, previous_fd)
-        before = self._signals
-        threading.Thread(target=self._watch_closing, args=(reader, before), name="interrupts", daemon=True).start()
+        threading.Thread(target=self._count, args=(reader,), name="interrupts", daemon=True).start()
 
     def _stop_watching(self) -> None:
         if self._watch is None:
@@ -112,9 +115,10 @@ class InterruptGuard:
         writer.close()  # the watching thread reads the end of its socket and returns
         self._watch = None
 
-    def _watch_closing(self, reader: socket.socket, before: int) -> None:
-        """Count the signals that arrive while the outputs close; at the run's second, give up."""
-        seen = before
+    def _count(self, reader: socket.socket) -> None:
+        """Count the run's signals as they arrive; at the second, give up once the closing has begun (or the
+        main thread, stuck, never begins it)."""
+        seen = 0
         with reader:
             while True:
                 try:
@@ -125,7 +129,9 @@ class InterruptGuard:
                     return
                 seen += sum(1 for signum in data if signum in _SIGNALS)
                 if seen >= 2:
-                    self._give_up()
+                    self._closing.wait(_GRACE_S)
+                    if self._watch is not None:  # the guard has not exited meanwhile (the run ended)
+                        self._give_up()
 
     def _give_up(self) -> None:
         """Write what can be written at once (``abandon``), say what may be incomplete, end the process."""
