@@ -126,16 +126,17 @@ class RerunRecorder:
         self._shapes_logged: set[TargetId] = set()  # targets whose shape is in the current part and not cleared
         self._drawn: dict[TargetId, set[str]] = {}  # a target -> its entities logged since it was last cleared
         self._meshes: dict[TargetId, list[rr.Mesh3D]] = {}  # a target -> its overlay models as meshes
-        self._video_frame_ns: np.ndarray | None = None
-        self._video_asset: rr.AssetVideo | None = None
+        self._video_frame_ns: np.ndarray | None = None  # a referenced source video's frame times
+        self._video_part: str | None = None  # the part that holds that video (the first)
         self._states: dict[TargetId, TrackState] = {}
         self._trajectory: list[np.ndarray] = []
         self._labelled = False  # world/labels holds something (cleared when no target is left)
         self._world_from_camera: Pose | None = None  # the camera where the anchor last placed it
         self._hypotheses_drawn = False
         self._causal_drawn = False
-        self._distortion_note = _distortion_note(camera)  # logged in each part's first frame
-        self._note_due = self._distortion_note is not None
+        distortion = _distortion_note(camera)
+        self._part_notes = [distortion] if distortion is not None else []  # events of each part's first frame
+        self._notes_due = bool(self._part_notes)
         self._last_check = time.monotonic()
         self._log_static_camera(camera)
 
@@ -155,7 +156,12 @@ class RerunRecorder:
     def _next_part(self) -> None:
         """Close the current file and go on in ``recording.partN.rrd``: the same recording (open the parts
         together: ``rerun recording*.rrd``), each file complete, with the static scene logged again so a
-        part also opens alone. Bounds the file writer's memory on long runs (see ``part_minutes``)."""
+        part also opens alone. Bounds the file writer's memory on long runs (see ``part_minutes``).
+
+        A referenced source video (:meth:`use_video`) is in the first part only, and each later part says
+        so in its events: logged again in each part, it costs its whole size in every file, and rerun's
+        writer holds it twice while it encodes it (measured on a 10-minute replay of a 159 MB video: a
+        spike of 100-300 MB at every part)."""
         assert self.rrd_path is not None
         path = self.rrd_path.with_name(f"{self.rrd_path.stem}.part{len(self.parts) + 1}{self.rrd_path.suffix}")
         self.series.flush()  # the metrics kept so far belong to the file that ends
@@ -164,9 +170,12 @@ class RerunRecorder:
         self._part_media_ns = None
         self._log_static_camera(self.camera)
         self._shapes_logged.clear()  # each target's shape (the anchor's too) goes into the new part when seen
-        self._note_due = self._distortion_note is not None
-        if self._video_asset is not None:
-            self.recording.log(IMAGE, self._video_asset, static=True)
+        if self._video_part is not None and len(self.parts) == 2:
+            self._part_notes.append(
+                f"the camera images are the source video, logged once in {self._video_part}: open this part "
+                f"with it (rerun {self.rrd_path.stem}*.rrd) to see them"
+            )
+        self._notes_due = bool(self._part_notes)
 
     def use_video(self, path: str | os.PathLike[str], expected_frames: int | None = None) -> bool:
         """Reference the source video itself (``AssetVideo`` + ``VideoFrameReference``) instead of
@@ -185,7 +194,7 @@ class RerunRecorder:
             log.info("%s: rerun sees %d frames, OpenCV %s; logging JPEG frames", path, frame_ns.size, expected_frames)
             return False
         self.recording.log(IMAGE, asset, static=True)
-        self._video_asset = asset
+        self._video_part = self.parts[-1].name if self.parts else "the recording"
         self._video_frame_ns = frame_ns
         self._log_static_camera(self.camera)  # the pinhole of the full-resolution video
         return True
@@ -195,7 +204,7 @@ class RerunRecorder:
         """The camera's ``Pinhole``, in the pixels of the image logged under it: scaled by ``image_scale``
         (not for a referenced video, which is the original) and with the principal point half a pixel
         further (rerun's pixel corners at integers) so that what the viewer projects sits on the image."""
-        scale = 1.0 if self._video_asset is not None else self.settings.image_scale
+        scale = 1.0 if self._video_frame_ns is not None else self.settings.image_scale
         self.recording.log(
             "world/camera",
             rr.Pinhole(
@@ -274,9 +283,10 @@ class RerunRecorder:
         recording.time("frame", sequence=frame.index)
         recording.time("time", seconds=frame.timestamp_ns * 1e-9)
         self.series.at(frame.index, frame.timestamp_ns * 1e-9)
-        if self._note_due and self._distortion_note is not None:
-            self._note_due = False
-            recording.text("events", self._distortion_note)
+        if self._notes_due:
+            self._notes_due = False
+            for note in self._part_notes:
+                recording.text("events", note)
         scale = self.settings.image_scale
         if self._video_frame_ns is not None:
             scale = 1.0  # the referenced video is the full-resolution original

@@ -511,3 +511,31 @@ def test_a_replay_faster_than_real_time_starts_its_parts_by_the_frames_own_time(
     ]
     for part in recorder.parts:
         verify(part)
+
+
+def test_a_referenced_video_is_in_the_first_part_only_and_later_parts_say_where(tmp_path, camera):
+    # given a recording in parts that references its source video
+    video = tmp_path / "clip.mp4"
+    writer = AnnotatedVideoWriter(video, fps=30)
+    for index in range(90):
+        writer.write(np.full((camera.height, camera.width, 3), index, np.uint8))
+    writer.close()
+    recorder = RerunRecorder(tmp_path / "recording.rrd", camera=camera, settings=RecordingConfig(part_minutes=1 / 60))
+    assert recorder.use_video(video, expected_frames=90)
+    texts: list[str] = []
+    text = recorder.recording.text
+    recorder.recording.text = lambda entity, line, **kw: (texts.append(line), text(entity, line, **kw))
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    for index in range(90):  # three seconds of the frames' own time: three parts
+        recorder.log_frame(Frame(image, index, index * 33_333_333), _result(index, ["marker:1"], camera))
+    recorder.close()
+    # then the video's bytes are in the first file only (not logged again per part), every part has its
+    # frame references and is a complete file, and each later part says once where the images are
+    assert [part.name for part in recorder.parts] == ["recording.rrd", "recording.part2.rrd", "recording.part3.rrd"]
+    for part in recorder.parts:
+        kinds = [chunk.split(" - ")[1] for chunk in rrd_chunks(part) if chunk.startswith(f"/{IMAGE} - ")]
+        assert any("VideoFrameReference" in kind for kind in kinds), (part.name, kinds)
+        assert any("AssetVideo" in kind for kind in kinds) == (part.name == "recording.rrd"), (part.name, kinds)
+        verify(part)
+    notes = [line for line in texts if "source video" in line]
+    assert notes == [notes[0]] * 2 and "recording.rrd" in notes[0] and "rerun recording*.rrd" in notes[0]
