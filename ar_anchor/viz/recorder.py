@@ -69,7 +69,7 @@ from ..geometry import Pose, angle_between_deg
 from ..sources.base import Frame
 from ..targets import TargetId, TrackState
 from ..track.tracker import FrameResult, TargetResult
-from .blueprints import run_blueprint
+from .blueprints import Framing, run_blueprint
 from .parts import closed_squares, entity_name, mesh3d
 from .series import SeriesBuffer
 from .sinks import Recording
@@ -133,6 +133,7 @@ class RerunRecorder:
         self._labelled = False  # world/labels holds something (cleared when no target is left)
         self._world_from_camera: Pose | None = None  # the camera where the anchor last placed it
         self._hypotheses_drawn = False
+        self._framed = False  # the 3D view's eye framed on the targets (once, at the first frame placing them)
         self._causal_drawn = False
         distortion = _distortion_note(camera)
         self._part_notes = [distortion] if distortion is not None else []  # events of each part's first frame
@@ -420,8 +421,20 @@ class RerunRecorder:
             )
             labels.append((name, world_from_target.tvec, target.length_m))
         self._log_labels(labels)
+        if labels and not self._framed:
+            self._frame_targets(labels, world_from_camera)
         self._log_hypotheses(result, world_from_camera)
         self._log_causal(result, world_from_camera)
+
+    def _frame_targets(self, labels: list[tuple[str, np.ndarray, float]], world_from_camera: Pose) -> None:
+        """The layout again, its 3D eye framed on the targets placed now (``labels``), from the camera's side."""
+        self._framed = True
+        framing = Framing.on(
+            np.array([position for _, position, _ in labels]),
+            np.array([length for _, _, length in labels]),
+            world_from_camera.tvec,
+        )
+        self.recording.send_blueprint(run_blueprint(overlay_image=self.settings.overlay_images, framing=framing))
 
     def _log_labels(self, labels: list[tuple[str, np.ndarray, float]]) -> None:
         """Every target's name at its centre, one ``Points3D`` for all (``world/labels``, logged whole each

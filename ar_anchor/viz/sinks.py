@@ -115,6 +115,11 @@ class Recording:
             writing.unlink(missing_ok=True)
             raise OutputError(f"{self._named(final)}: cannot write ({err.strerror})") from None
 
+    def send_blueprint(self, blueprint: rrb.Blueprint) -> None:
+        """Make ``blueprint`` the layout from now on: the viewer's, the file's, and the next file's."""
+        self._blueprint = blueprint
+        self.stream.send_blueprint(blueprint, make_active=True, make_default=True)
+
     def next_file(self, path: str | os.PathLike[str]) -> None:
         """Close the current file complete and go on in ``path`` (the viewer, if any, stays). The new
         file starts with the blueprint and the recording's name; static data is the caller's to log again."""
