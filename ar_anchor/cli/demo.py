@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+from .export import add_export_options, export_after_run, export_outputs
 from .options import (
     add_command,
     add_run_options,
@@ -53,6 +54,7 @@ def add_parser(commands: Any) -> None:
     demo.add_argument("--noise", type=float_in(0.0, 100.0), default=2.0, help="sensor noise sigma, grey levels (0-100)")
     demo.add_argument("--blur", type=float_in(0.0, 50.0), default=0.6, help="optical blur sigma, pixels (0-50)")
     add_run_options(demo, "demo")
+    add_export_options(demo, "the scene rendered again")
     demo.set_defaults(func=cmd_demo)
 
 
@@ -64,6 +66,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from ..run.paths import claim_out_dir, config_inputs, run_output_paths
     from ..sources.synthetic import SyntheticSource
     from ..synthetic import Trajectory, demo_scene
+    from ..tools.export.run import camera_summary, clear_previous_exports
     from ..track.tracker import Tracker
 
     config = load_tracker_config(args, demo=True)
@@ -83,16 +86,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
         )
     except SourceError as err:
         raise SourceError(f"--camera {args.camera}: {err}") from None
-    options = run_options(
-        args, "demo", extra_summary={"command": "demo", "seed": args.seed, "trajectory": args.trajectory}
-    )
+    summary = {"command": "demo", "seed": args.seed, "trajectory": args.trajectory, "camera": camera_summary(camera)}
+    options = run_options(args, "demo", extra_summary=summary)
     out_dir = args.out or default_out("demo")
-    outputs_named = run_output_paths(out_dir, video_out=args.video_out)
+    outputs_named = run_output_paths(out_dir, video_out=args.video_out, extra=export_outputs(args, out_dir))
     progress = Progress(not args.quiet, "demo")
     try:
         with claim_out_dir(out_dir, outputs_named, config_inputs(config, args.config, args.camera)):
+            clear_previous_exports(out_dir)  # they belong to the poses.csv this run replaces
             with SyntheticSource(scene) as source:
                 outputs = run_session(source, Tracker(config, camera), out_dir, options, progress=progress)
     finally:
         progress.close()
-    return finish(args, outputs)
+    return export_after_run(args, out_dir, finish(args, outputs), camera, lambda: SyntheticSource(scene))

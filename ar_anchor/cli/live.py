@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .export import add_export_options, export_after_run, export_outputs
 from .options import (
     add_command,
     add_run_options,
@@ -28,8 +29,8 @@ def add_parser(commands: Any) -> None:
         commands,
         "live",
         "track a V4L2 webcam (or --device synthetic) live; view it in rerun",
-        "Track a live camera. The live view is the rerun viewer (--spawn, or --connect to a running "
-        "one); outputs are written as the run goes and finalised on Ctrl-C.",
+        "Track a live camera. The live view is the rerun viewer (--spawn, --connect to a running "
+        "one, or --serve: a web viewer for a browser); outputs are written as the run goes and finalised on Ctrl-C.",
     )
     live.add_argument(
         "--device",
@@ -67,6 +68,7 @@ def add_parser(commands: Any) -> None:
         help="also save the processed frames losslessly (raw.mkv + timestamps) for frame-exact replay",
     )
     add_run_options(live, "live")
+    add_export_options(live, "the frames --record saved in raw.mkv; needs --record")
     live.set_defaults(func=cmd_live)
 
 
@@ -106,12 +108,15 @@ def _print_live_counts(stats: dict[str, Any]) -> None:
 def cmd_live(args: argparse.Namespace) -> int:
     """``ar-anchor live``: track ``--device`` (a V4L2 camera or ``synthetic``) until it ends; the exit code."""
     from ..camera import CameraModel
-    from ..errors import CameraError, SourceError
+    from ..errors import CameraError, InputError, SourceError
     from ..run.loop import run_session
     from ..run.paths import claim_out_dir, config_inputs, run_output_paths
     from ..sources.open import SYNTHETIC, DeviceSettings, open_source
+    from ..tools.export.run import RAW_VIDEO, camera_summary, clear_previous_exports
     from ..track.tracker import Tracker
 
+    if args.export_images and not args.record:
+        raise InputError("--export-images: a live run's frames are kept only with --record (raw.mkv)")
     config = load_tracker_config(args, demo=args.device == SYNTHETIC)
     scene = _synthetic_camera_scene(args, config) if args.device == SYNTHETIC else None
     device = DeviceSettings(
@@ -139,16 +144,23 @@ def cmd_live(args: argparse.Namespace) -> int:
             f"live {args.device}",
             record_raw=args.record,
             record_fps=source.info.fps or 30.0,
-            extra_summary={"command": "live", "device": str(args.device), "granted": dict(source.grabber.granted)},
+            extra_summary={
+                "command": "live",
+                "device": str(args.device),
+                "granted": dict(source.grabber.granted),
+                "camera": camera_summary(camera),
+            },
             output_queue=3,  # live: a late logger skips frames rather than holding many (6 MB each at 1080p)
         )
         camera_yml = [("--record", Path(out_dir) / "camera.yml")] if args.record else []
-        outputs_named = run_output_paths(out_dir, record_raw=args.record, video_out=args.video_out, extra=camera_yml)
+        extra = camera_yml + export_outputs(args, Path(out_dir))
+        outputs_named = run_output_paths(out_dir, record_raw=args.record, video_out=args.video_out, extra=extra)
         status = LiveStatus(not args.quiet, source.stats)
         try:
             with claim_out_dir(out_dir, outputs_named, config_inputs(config, args.config, args.camera)), source:
                 if args.record:
                     camera.to_yaml(Path(out_dir) / "camera.yml")  # so `ar-anchor replay OUT/raw.mkv` finds it
+                clear_previous_exports(Path(out_dir))  # they belong to the poses.csv this run replaces
                 outputs = run_session(
                     source,
                     Tracker(config, camera),
@@ -163,4 +175,5 @@ def cmd_live(args: argparse.Namespace) -> int:
         source.close()
     if not args.quiet:
         _print_live_counts(source.stats.as_dict())
-    return finish(args, outputs)
+    raw = Path(out_dir) / RAW_VIDEO
+    return export_after_run(args, out_dir, finish(args, outputs), camera, lambda: open_source(raw, live=False))

@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     import argparse
 
     from .. import __version__
-    from . import bench, demo, live, replay, tools
+    from . import bench, demo, export, live, replay, tools, view
     from .options import add_common_options
 
     parser = argparse.ArgumentParser(
@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"ar-anchor {__version__}")
     add_common_options(parser, defaults=True)
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for command in (demo, replay, live, bench):
+    for command in (demo, replay, live, bench, export, view):
         command.add_parser(commands)
     tools.add_parsers(commands)
     return parser
@@ -105,6 +105,10 @@ def _preload(command: str | None) -> None:
             from ..tools import markers  # noqa: F401
         elif command == "study":
             from ..tools.study import command as study  # noqa: F401
+        elif command == "export":
+            import mcap_ros2.writer  # noqa: F401
+
+            from ..tools.export import bag, run  # noqa: F401
     except Exception:  # noqa: BLE001 - raised again, and reported, where the command imports it
         import logging
 
@@ -125,6 +129,10 @@ def _run_command(argv: Sequence[str] | None, signals: terminal.Signals) -> int:
                 from ..viz.viewer import require_viewer
 
                 require_viewer(args.connect, "--connect")
+            if getattr(args, "serve", False):
+                from .view import serve_run
+
+                return serve_run(args)
             return int(args.func(args))
         finally:
             signals.finishing()

@@ -132,7 +132,8 @@ def add_run_options(parser: argparse.ArgumentParser, name: str, *, spawn: bool =
 
 
 def add_viewer_options(parser: argparse.ArgumentParser) -> None:
-    """--spawn (a viewer of this run's own) or --connect [URL] (a running one, checked before the run)."""
+    """--spawn (a viewer of this run's own), --connect [URL] (a running one, checked before the run) or
+    --serve [--serve-port PORT] (a web viewer on 127.0.0.1: :func:`ar_anchor.cli.view.serve_run`)."""
     viewer = parser.add_mutually_exclusive_group()
     viewer.add_argument(
         "--spawn",
@@ -148,6 +149,19 @@ def add_viewer_options(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="stream to a running viewer (default rerun+http://127.0.0.1:9876/proxy, the local one); "
         "the run does not start when none listens there",
+    )
+    viewer.add_argument(
+        "--serve",
+        action="store_true",
+        help="also stream to a web viewer it serves on 127.0.0.1 (no display needed: open the URL it prints "
+        "in a browser); after the run it keeps serving the recording until Ctrl-C",
+    )
+    parser.add_argument(
+        "--serve-port",
+        type=int_at_least(0),
+        default=None,
+        metavar="PORT",
+        help="--serve: the web viewer's HTTP port (default 9090, or a free one when taken)",
     )
 
 
@@ -179,8 +193,11 @@ def default_out(name: str) -> Path:
 def run_options(args: argparse.Namespace, name: str, **specific: Any):  # noqa: ANN201
     """The :class:`~ar_anchor.run.options.RunOptions` every run command takes from its options (frames,
     viewer, annotated video, overlays), the recording named ``ar_anchor <name>``, plus ``specific``."""
+    from ..errors import InputError
     from ..run.options import RunOptions
 
+    if getattr(args, "serve_port", None) is not None and not getattr(args, "serve", False):
+        raise InputError("--serve-port is the port of --serve's web viewer: give --serve too")
     return RunOptions(
         max_frames=args.max_frames,
         spawn=args.spawn,

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_FAILURE, printable
+from .export import add_export_options, export_after_run, export_outputs
 from .options import (
     add_command,
     add_run_options,
@@ -54,6 +55,7 @@ def add_parser(commands: Any) -> None:
         "with the whole recording",
     )
     add_run_options(replay, "replay")
+    add_export_options(replay, "SOURCE decoded again")
     replay.set_defaults(func=cmd_replay)
 
 
@@ -78,6 +80,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from ..run.loop import OfflineReplay, run_session
     from ..run.paths import claim_out_dir, config_inputs, run_output_paths, source_inputs
     from ..sources import open_source
+    from ..tools.export.run import camera_summary, clear_previous_exports
     from ..track.tracker import Tracker
 
     config = load_tracker_config(args)
@@ -88,11 +91,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
             args,
             f"replay {args.source}",
             record_fps=source.info.fps or 30.0,
-            extra_summary={"command": "replay", "source": str(args.source)},
+            extra_summary={"command": "replay", "source": str(args.source), "camera": camera_summary(camera)},
         )
         out_dir = args.out or default_out("replay")
         inputs = source_inputs(source) + config_inputs(config, args.config, camera_path)
-        outputs_named = run_output_paths(out_dir, video_out=args.video_out)
+        outputs_named = run_output_paths(out_dir, video_out=args.video_out, extra=export_outputs(args, out_dir))
         offline = None
         if not args.causal and config.filter.enabled:  # (--no-filter: nothing to decide with hindsight)
             offline = OfflineReplay(
@@ -102,6 +105,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         progress = Progress(not args.quiet, "replay" if offline is None else "replay 1/3 track")
         try:
             with claim_out_dir(out_dir, outputs_named, inputs):
+                clear_previous_exports(out_dir)  # they belong to the poses.csv this run replaces
                 outputs = run_session(
                     source,
                     Tracker(config, camera),
@@ -124,5 +128,5 @@ def cmd_replay(args: argparse.Namespace) -> int:
             f"the {outputs.summary['frames']} frames read before that",
             file=sys.stderr,
         )
-        return EXIT_FAILURE
-    return code
+        code = EXIT_FAILURE
+    return export_after_run(args, out_dir, code, camera, lambda: open_source(args.source, live=False, fps=args.fps))

@@ -1,0 +1,190 @@
+"""`ar-anchor view`: open recordings in the rerun viewer, native or (``--web``) in a browser.
+
+The viewer is the ``rerun`` program of rerun-sdk, started with a fixed command line
+(:mod:`ar_anchor.viz.viewer`): natively it is a window of its own, and this command waits until it is
+closed; with ``--web`` it serves the web viewer and the recordings on 127.0.0.1 (two ports: the page over
+HTTP, the recordings over gRPC) until Ctrl-C. Another address only with ``--bind``, and with a warning:
+rerun's servers have no authentication.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..errors import EXIT_INTERRUPTED, EXIT_OK, ArAnchorError, InputError, printable
+from .options import add_command
+
+log = logging.getLogger(__name__)
+
+_RRD_MAGIC = b"RRF"  # an .rrd (or .rbl) file starts with RRF and a format digit
+
+
+def port_number(text: str) -> int:
+    """An argparse type: a TCP port, 1-65535 (0: any free port)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a port in 0-65535 (0: a free one), got {port}")
+    return port
+
+
+def bind_address(text: str) -> str:
+    """An argparse type: an IP address to listen on (``localhost`` allowed)."""
+    import ipaddress
+
+    if text == "localhost":
+        return "127.0.0.1"
+    try:
+        return str(ipaddress.ip_address(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an IP address such as 127.0.0.1, got {text!r}") from None
+
+
+def add_parser(commands: Any) -> None:
+    """The ``view`` command's options."""
+    view = add_command(
+        commands,
+        "view",
+        "open recordings in the rerun viewer: a window, or --web in a browser (headless machines)",
+        "Open RECORDING (.rrd files, or a run's output directory: its recording*.rrd parts) in the native "
+        "rerun viewer, which needs a display, and wait until its window is closed. --web serves the web "
+        "viewer on 127.0.0.1 instead and prints the URL to open; it serves until Ctrl-C. Over SSH, forward "
+        "both ports it prints (e.g. ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876 HOST).",
+    )
+    view.add_argument(
+        "recordings",
+        nargs="+",
+        metavar="RECORDING",
+        help="a .rrd file (e.g. OUT/recording*.rrd: all parts of a long run) or a run's output directory",
+    )
+    view.add_argument("--web", action="store_true", help="serve the web viewer for a browser instead of a window")
+    view.add_argument(
+        "--port",
+        type=port_number,
+        default=None,
+        help="--web: the web viewer's HTTP port, the one in the URL (default 9090, or a free one when taken)",
+    )
+    view.add_argument(
+        "--grpc-port",
+        type=port_number,
+        default=None,
+        help="the viewer's gRPC port, where the page reads the recordings (default 9876, or a free one when taken)",
+    )
+    view.add_argument(
+        "--bind",
+        type=bind_address,
+        default="127.0.0.1",
+        metavar="ADDRESS",
+        help="address the viewer listens on (default 127.0.0.1: this machine only). Any other address "
+        "shows the recordings, unauthenticated, to whoever reaches it on the network",
+    )
+    view.set_defaults(func=cmd_view)
+
+
+def _part_number(path: Path) -> tuple[int, str]:
+    """recording.rrd first, then recording.part2.rrd, part3, ... part10 (not as text sorts them)."""
+    match = re.fullmatch(r"recording\.part(\d+)\.rrd", path.name)
+    return (int(match.group(1)) if match else 1, path.name)
+
+
+def recording_files(names: list[str]) -> list[Path]:
+    """The files to open for ``names``: each an .rrd file, or a directory meaning its ``recording*.rrd``
+    parts in order. InputError naming the first one that is missing, unreadable or not a recording."""
+    files: list[Path] = []
+    for name in names:
+        path = Path(name)
+        if path.is_dir():
+            parts = sorted(path.glob("recording*.rrd"), key=_part_number)
+            if not parts:
+                raise InputError(f"{printable(name)}: no recording (recording*.rrd) in this directory")
+        else:
+            parts = [path]
+        for part in parts:
+            _check_recording(part)
+            if part not in files:
+                files.append(part)
+    return files
+
+
+def _check_recording(path: Path) -> None:
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(4)
+    except FileNotFoundError:
+        raise InputError(f"{printable(path)}: no such file") from None
+    except OSError as err:
+        raise InputError(f"{printable(path)}: cannot read ({err.strerror or err})") from None
+    if not head.startswith(_RRD_MAGIC):
+        raise InputError(f"{printable(path)}: not a rerun recording (.rrd)")
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """``ar-anchor view RECORDING...``: show the recordings until the window closes or Ctrl-C; the exit code."""
+    from ..viz.viewer import is_loopback, open_native_viewer, serve_web_viewer, stop_process
+
+    files = recording_files(args.recordings)
+    if not is_loopback(args.bind):
+        log.warning(
+            "--bind %s: the viewer and the recordings are open to the network here, with no authentication",
+            args.bind,
+        )
+    if not args.web:
+        if args.port is not None:
+            raise InputError("--port is the web viewer's: give --web too (the native viewer's port is --grpc-port)")
+        process = open_native_viewer(files, bind=args.bind, port=args.grpc_port)
+        try:
+            status = process.wait()
+        except KeyboardInterrupt:
+            stop_process(process)
+            print("ar-anchor: interrupted; viewer closed", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        if status != 0:
+            raise ArAnchorError(f"the rerun viewer exited with status {status} (-vv shows its output)")
+        return EXIT_OK
+    viewer = serve_web_viewer(files, bind=args.bind, web_port=args.port, grpc_port=args.grpc_port)
+    try:
+        print(f"view: open {viewer.url}", flush=True)
+        if not args.quiet:
+            print(f"view: serving {len(files)} recording(s) on {args.bind} until Ctrl-C", file=sys.stderr, flush=True)
+        status = viewer.wait()
+    except KeyboardInterrupt:
+        print("ar-anchor: interrupted; web viewer stopped", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        viewer.stop()
+    raise ArAnchorError(f"the rerun web viewer exited on its own (status {status}; -vv shows its output)")
+
+
+def serve_run(args: argparse.Namespace) -> int:
+    """A run command with ``--serve``: a web viewer on 127.0.0.1 (its URL printed first) that the run
+    streams to (as ``--connect`` to it), besides its files. After a run that ended by itself the viewer
+    keeps serving the recording until Ctrl-C, and the exit code is the run's; a run that fails or is
+    interrupted takes the viewer with it."""
+    from ..viz.viewer import serve_web_viewer
+
+    viewer = serve_web_viewer(web_port=args.serve_port, grpc_port=None, options=("--serve-port", "--serve"))
+    try:
+        print(f"{args.command}: watch the run at {viewer.url}", flush=True)
+        args.connect = viewer.grpc_url
+        code = int(args.func(args))
+        print(
+            f"{args.command}: the run ended; the web viewer keeps serving it at {viewer.url} until Ctrl-C",
+            file=sys.stderr,
+            flush=True,
+        )
+        try:
+            viewer.wait()
+        except KeyboardInterrupt:
+            print("ar-anchor: web viewer stopped", file=sys.stderr)
+            return code
+        log.warning("the web viewer exited on its own")
+        return code
+    finally:
+        viewer.stop()

@@ -1,0 +1,409 @@
+"""`ar-anchor view` and `--serve`: recordings in the native or web viewer, served on 127.0.0.1 only; and
+the web viewer in headless Chromium showing the overlay in the camera view."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ar_anchor.cli import view
+from ar_anchor.errors import EXIT_INTERRUPTED, EXIT_USAGE, InputError
+from ar_anchor.viz import viewer
+from tests.browser import Browser, find_chromium
+from tests.helpers import cli, describe
+
+REPO = Path(__file__).resolve().parents[2]
+URL_LINE = re.compile(r"(?:view: open|watch the run at) (http://\S+)")
+
+
+def _fake_rrd(path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"RRF2" + bytes(60))  # the header is all `view` checks before rerun opens it
+    return path
+
+
+def _small_recording(path: Path) -> Path:
+    """A real .rrd (a few points), written with the SDK: quicker than a demo run."""
+    import rerun as rr
+
+    stream = rr.RecordingStream("ar_anchor_test")
+    stream.save(str(path))
+    stream.log("points", rr.Points3D(np.zeros((3, 3))))
+    stream.flush()
+    stream.disconnect()
+    return path
+
+
+def _no_display() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+
+
+def _listening_pids_addresses(pid_tree: set[int]) -> list[str]:
+    """The local addresses (host:port) that the processes ``pid_tree`` listen on, from ``ss -ltnp``."""
+    out = subprocess.run(["ss", "-ltnpH"], capture_output=True, text=True, timeout=30, check=True).stdout
+    found = []
+    for line in out.splitlines():
+        pids = {int(p) for p in re.findall(r"pid=(\d+)", line)}
+        if pids & pid_tree:
+            found.append(line.split()[3])
+    return found
+
+
+def _descendants(pid: int) -> set[int]:
+    out = subprocess.run(["ps", "-eo", "pid=,ppid="], capture_output=True, text=True, check=True).stdout
+    children: dict[int, list[int]] = {}
+    for line in out.splitlines():
+        child, parent = (int(x) for x in line.split())
+        children.setdefault(parent, []).append(child)
+    tree, todo = {pid}, [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            if child not in tree:
+                tree.add(child)
+                todo.append(child)
+    return tree
+
+
+def _read_url(process: subprocess.Popen[str], timeout_s: float = 120.0) -> str:
+    """The URL the command prints first (on stdout)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = process.stdout.readline()  # type: ignore[union-attr]
+        if not line:
+            break
+        match = URL_LINE.search(line)
+        if match:
+            return match.group(1)
+    process.kill()
+    raise AssertionError(f"no URL printed; stderr: {process.stderr.read()!r}")  # type: ignore[union-attr]
+
+
+def _interrupt(process: subprocess.Popen[str]) -> tuple[int, str]:
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=30)
+    return process.returncode, stderr
+
+
+# ---------------------------------------------------------------------------- recordings and errors
+
+
+def test_a_run_directory_means_its_recording_parts_in_order(tmp_path):
+    # given a long run's parts (part10 after part2, not as text sorts them) and other files
+    for name in ("recording.part10.rrd", "recording.rrd", "recording.part2.rrd"):
+        _fake_rrd(tmp_path / "run" / name)
+    (tmp_path / "run" / "poses.csv").write_text("frame\n")
+    # when / then
+    names = [p.name for p in view.recording_files([str(tmp_path / "run")])]
+    assert names == ["recording.rrd", "recording.part2.rrd", "recording.part10.rrd"]
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda d: d / "missing.rrd", "missing.rrd: no such file"),
+        (lambda d: (d / "notes.rrd").write_text("hello") and d / "notes.rrd", "notes.rrd: not a rerun recording"),
+        (lambda d: (d / "empty.rrd").touch() or d / "empty.rrd", "empty.rrd: not a rerun recording"),
+        (lambda d: (d / "empty_dir").mkdir() or d / "empty_dir", "empty_dir: no recording"),
+    ],
+    ids=["missing", "text", "empty", "empty-directory"],
+)
+def test_a_file_that_is_not_a_recording_is_named(tmp_path, make, message):
+    path = make(tmp_path)
+    with pytest.raises(InputError, match=re.escape(message)):
+        view.recording_files([str(path)])
+
+
+def test_view_of_a_missing_file_is_one_line_and_exit_2(tmp_path):
+    result = subprocess.run(
+        cli(["view", "--web", str(tmp_path / "nope.rrd")]), capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == EXIT_USAGE, describe(result)
+    assert result.stderr.strip().splitlines() == [f"ar-anchor: error: {tmp_path / 'nope.rrd'}: no such file"]
+
+
+def test_the_native_viewer_without_a_display_says_to_use_web(tmp_path):
+    rrd = _fake_rrd(tmp_path / "recording.rrd")
+    result = subprocess.run(cli(["view", str(rrd)]), capture_output=True, text=True, timeout=120, env=_no_display())
+    assert result.returncode == EXIT_USAGE, describe(result)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "no display" in lines[0] and "--web" in lines[0], describe(result)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["view", "--bind", "example.org", "x.rrd"], ["view", "--port", "70000", "x.rrd"]],
+    ids=["bind-not-an-address", "port-out-of-range"],
+)
+def test_bad_view_options_are_usage_errors(argv):
+    result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=120)
+    assert result.returncode == EXIT_USAGE, describe(result)
+
+
+def test_serve_port_without_serve_is_refused(tmp_path):
+    argv = ["-q", "demo", "--frames", "1", "--serve-port", "9999", "--out", str(tmp_path / "run")]
+    result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=120)
+    assert result.returncode == EXIT_USAGE, describe(result)
+    assert "--serve-port" in result.stderr and "--serve" in result.stderr
+
+
+def test_serve_is_exclusive_with_spawn_and_connect():
+    for other in (["--spawn"], ["--connect"]):
+        result = subprocess.run(cli(["demo", "--serve", *other]), capture_output=True, text=True, timeout=120)
+        assert result.returncode == EXIT_USAGE and "not allowed with" in result.stderr, describe(result)
+
+
+def test_a_bind_beyond_this_machine_is_warned_about(tmp_path, monkeypatch, caplog):
+    # given a viewer that would serve (stubbed: nothing is started)
+    class Served:
+        url, grpc_url = "http://0.0.0.0:1/", "rerun+http://0.0.0.0:2/proxy"
+
+        def wait(self) -> int:
+            raise KeyboardInterrupt
+
+        def stop(self) -> None:
+            pass
+
+    started = {}
+    monkeypatch.setattr(viewer, "serve_web_viewer", lambda files, **kw: started.update(kw) or Served())
+    args = argparse.Namespace(
+        recordings=[str(_fake_rrd(tmp_path / "r.rrd"))], web=True, port=None, grpc_port=None, bind="0.0.0.0", quiet=True
+    )
+    # when
+    assert view.cmd_view(args) == EXIT_INTERRUPTED
+    # then
+    assert started["bind"] == "0.0.0.0"
+    assert any("--bind 0.0.0.0" in r.getMessage() and "network" in r.getMessage() for r in caplog.records)
+
+
+def test_the_native_viewer_opens_the_files_listening_on_localhost(tmp_path, monkeypatch):
+    # given a display and a stand-in for the viewer process
+    monkeypatch.setenv("DISPLAY", ":0")
+    started = []
+
+    class Window:
+        def __init__(self, command, **_kwargs) -> None:
+            started.append(command)
+
+        def wait(self) -> int:  # the user closed it
+            return 0
+
+    monkeypatch.setattr(viewer.subprocess, "Popen", Window)
+    parts = [_fake_rrd(tmp_path / "run" / name) for name in ("recording.rrd", "recording.part2.rrd")]
+    args = argparse.Namespace(
+        recordings=[str(tmp_path / "run")], web=False, port=None, grpc_port=None, bind="127.0.0.1", quiet=True
+    )
+    # when / then
+    assert view.cmd_view(args) == 0
+    command = started[0]
+    assert command[command.index("--bind") + 1] == "127.0.0.1"
+    assert command[-2:] == [str(p) for p in parts]
+
+
+def test_viewer_urls_name_a_loopback_host_for_an_unspecified_bind():
+    assert viewer._url_host("0.0.0.0") == "127.0.0.1"
+    assert viewer._url_host("::1") == "[::1]"
+    assert viewer.is_loopback("127.0.0.1") and viewer.is_loopback("::1") and not viewer.is_loopback("0.0.0.0")
+
+
+def test_a_taken_default_port_is_replaced_and_a_taken_chosen_one_refused():
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        assert viewer._pick_port("127.0.0.1", None, port, "--port") != port
+        with pytest.raises(InputError, match=f"--port {port}: 127.0.0.1:{port} is in use"):
+            viewer._pick_port("127.0.0.1", port, 9090, "--port")
+
+
+# ---------------------------------------------------------------------------- what listens
+
+
+@pytest.mark.skipif(shutil.which("ss") is None, reason="ss (iproute2) not installed")
+def test_view_web_listens_on_127_0_0_1_only_and_ends_on_ctrl_c(tmp_path):
+    # given a recording
+    rrd = _small_recording(tmp_path / "recording.rrd")
+    # when it is served
+    process = subprocess.Popen(
+        cli(["view", "--web", "--port", "0", "--grpc-port", "0", str(rrd)]),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        url = _read_url(process)
+        addresses = _listening_pids_addresses(_descendants(process.pid))
+    finally:
+        code, stderr = _interrupt(process)
+    # then both its ports (the page's and the gRPC server's) are on 127.0.0.1, and nothing else
+    assert len(addresses) == 2, addresses
+    assert all(a.startswith("127.0.0.1:") for a in addresses), addresses
+    assert url.startswith("http://127.0.0.1:") and "url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A" in url
+    # and Ctrl-C ends it in one line, exit 130, the server gone with it
+    assert code == EXIT_INTERRUPTED
+    assert stderr.strip().splitlines()[-1] == "ar-anchor: interrupted; web viewer stopped"
+    time.sleep(0.5)
+    assert not _listening_pids_addresses(_descendants(process.pid) | {process.pid}), "the server outlived the command"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("ss") is None, reason="ss (iproute2) not installed")
+def test_serve_streams_the_run_and_keeps_serving_until_ctrl_c(tmp_path):
+    out = tmp_path / "run"
+    argv = ["-q", "demo", "--frames", "3", "--serve", "--serve-port", "0", "--out", str(out)]
+    process = subprocess.Popen(cli(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = _read_url(process)
+        deadline = time.monotonic() + 120
+        while not (out / "summary.json").exists() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)
+        time.sleep(1.0)
+        # the run is over, its files complete; the viewer still serves, on 127.0.0.1 only
+        assert process.poll() is None, "the command ended with the run"
+        addresses = _listening_pids_addresses(_descendants(process.pid))
+    finally:
+        code, stderr = _interrupt(process)
+    assert (out / "recording.rrd").stat().st_size > 0
+    assert url.startswith("http://127.0.0.1:")
+    assert len(addresses) == 2 and all(a.startswith("127.0.0.1:") for a in addresses), addresses
+    # Ctrl-C then stops the viewer; the exit code is the run's
+    assert code == 0, stderr
+    assert "the web viewer keeps serving" in stderr
+    assert stderr.strip().splitlines()[-1] == "ar-anchor: web viewer stopped"
+
+
+@pytest.mark.slow
+def test_a_run_interrupted_while_serving_takes_the_viewer_with_it(tmp_path):
+    argv = ["-q", "live", "--device", "synthetic", "--serve", "--serve-port", "0", "--out", str(tmp_path / "run")]
+    process = subprocess.Popen(cli(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _read_url(process)
+        time.sleep(3.0)
+        tree = _descendants(process.pid)
+    finally:
+        code, stderr = _interrupt(process)
+    assert code == EXIT_INTERRUPTED, stderr
+    assert "ar-anchor: interrupted" in stderr
+    time.sleep(0.5)
+    alive = subprocess.run(["ps", "-o", "pid=", "-p", ",".join(map(str, tree))], capture_output=True, text=True)
+    assert not alive.stdout.strip(), f"left running: {alive.stdout}"
+
+
+# ---------------------------------------------------------------------------- in a browser
+
+SIZE = (1600, 1000)
+BROWSER_TIMEOUT_S = 150.0
+CUBE_HUE = (98, 116)  # OpenCV hue (0-180) of the demo's cube overlay, RGB (70, 140, 240), under any shading
+MIN_BLOB_PX = 1500  # an overlay part (a cube face, the pin's ball) at 1600x1000, thin lines opened away
+
+
+def _blobs(mask: np.ndarray) -> list[tuple[int, tuple[float, float]]]:
+    """(area, centroid) of the blobs of ``mask`` at least 9 px thick."""
+    opened = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((9, 9), np.uint8))
+    count, _, stats, centroids = cv2.connectedComponentsWithStats(opened)
+    return [(int(stats[i, cv2.CC_STAT_AREA]), tuple(centroids[i])) for i in range(1, count)]
+
+
+def overlay_in_camera_view(shot: np.ndarray) -> dict:
+    """What the main (left) view of a screenshot shows: ``camera`` the bounding box of the camera image
+    (a large textured, non-background area) or None; ``cubes`` and ``pins`` the overlay's blue cube and red pin
+    blobs inside it. ``ok`` when the camera image fills much of the view and both overlay kinds are drawn on it."""
+    height, width = shot.shape[:2]
+    left = shot[int(0.05 * height) : int(0.8 * height), : int(0.4 * width)]
+    hsv = cv2.cvtColor(left, cv2.COLOR_BGR2HSV)
+    hue, sat, val = (hsv[..., i].astype(int) for i in range(3))
+    # the camera image: pixels far from the viewer's light-grey or near-black backgrounds, as one large area
+    content = ((val < 215) & (val > 40)) | (sat > 60)
+    closed = cv2.morphologyEx(content.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((15, 15), np.uint8))
+    count, _, stats, _ = cv2.connectedComponentsWithStats(closed)
+    result: dict = {"ok": False, "camera": None, "cubes": [], "pins": []}
+    if count < 2:
+        return result
+    biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    x, y, w, h, area = (int(v) for v in stats[biggest])
+    if area < 0.25 * left.shape[0] * left.shape[1] or w < 0.6 * left.shape[1]:
+        return result  # a loading screen, an empty or a blank view: no large image
+    patch = cv2.cvtColor(left[y : y + h, x : x + w], cv2.COLOR_BGR2GRAY)
+    if float(patch.std()) < 15.0:
+        return result  # a flat area, not a camera image
+    result["camera"] = (x, y, w, h)
+
+    def inside(centroid: tuple[float, float]) -> bool:
+        return x <= centroid[0] <= x + w and y <= centroid[1] <= y + h
+
+    cube = (hue >= CUBE_HUE[0]) & (hue <= CUBE_HUE[1]) & (sat > 120) & (val > 60)
+    pin = ((hue <= 6) | (hue >= 172)) & (sat > 130) & (val > 60)
+    result["cubes"] = [b for b in _blobs(cube) if b[0] >= MIN_BLOB_PX and inside(b[1])]
+    result["pins"] = [b for b in _blobs(pin) if b[0] >= MIN_BLOB_PX and inside(b[1])]
+    result["ok"] = bool(result["cubes"] and result["pins"])
+    return result
+
+
+def test_the_screenshot_check_refuses_blank_and_loading_pages():
+    light = np.full((SIZE[1], SIZE[0], 3), 248, np.uint8)
+    assert not overlay_in_camera_view(light)["ok"]
+    welcome = light.copy()
+    cv2.putText(welcome, "The data layer for physical AI", (400, 140), cv2.FONT_HERSHEY_SIMPLEX, 2, (20, 20, 20), 3)
+    cv2.rectangle(welcome, (8, 60), (190, 90), (235, 120, 30), -1)  # the blue "Welcome" button
+    assert not overlay_in_camera_view(welcome)["ok"]
+    # a camera image with no overlay on it
+    rng = np.random.default_rng(0)
+    image = light.copy()
+    image[240:640, :700] = rng.integers(60, 200, (400, 700, 3), dtype=np.uint8)
+    assert overlay_in_camera_view(image)["camera"] is not None and not overlay_in_camera_view(image)["ok"]
+    # ... and with a blue cube and a red ball drawn on it
+    cv2.rectangle(image, (200, 300), (300, 400), (240, 140, 70), -1)
+    cv2.circle(image, (450, 500), 60, (50, 40, 220), -1)
+    assert overlay_in_camera_view(image)["ok"]
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+@pytest.mark.skipif(find_chromium() is None, reason="chromium not installed (apt-get install chromium; .ci/run does)")
+def test_the_web_viewer_shows_the_overlay_in_the_camera_view(tmp_path):
+    started = time.monotonic()
+    # given a short demo run (a still camera near the markers: the overlay is large)
+    out = tmp_path / "run"
+    argv = ["-q", "demo", "--frames", "30", "--trajectory", "static", "--out", str(out)]
+    subprocess.run(cli(argv), check=True, capture_output=True, timeout=300)
+    # when its recording is served and opened in headless Chromium
+    process = subprocess.Popen(
+        cli(["view", "--web", "--port", "0", "--grpc-port", "0", str(out / "recording.rrd")]),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    browser = None
+    found: dict = {}
+    try:
+        url = _read_url(process)
+        browser = Browser(SIZE, tmp_path / "chromium.log")
+        browser.navigate(url)
+        deadline = time.monotonic() + BROWSER_TIMEOUT_S
+        shots = 0
+        while time.monotonic() < deadline:
+            time.sleep(2.0)
+            shot = browser.screenshot()
+            shots += 1
+            cv2.imwrite(str(tmp_path / "web_viewer.png"), shot)
+            found = overlay_in_camera_view(shot)
+            if found["ok"]:
+                break
+    finally:
+        if browser is not None:
+            browser.close()
+        code, _ = _interrupt(process)
+    elapsed = time.monotonic() - started
+    print(f"web viewer: {shots} screenshots, {elapsed:.0f} s in all; {found}")
+    # then the main view shows the camera image with the cubes and the pin drawn on it
+    last = tmp_path / "web_viewer.png"
+    assert found.get("ok"), f"the overlay is not drawn in the camera view (last screenshot: {last}): {found}"
+    assert code == EXIT_INTERRUPTED
