@@ -9,6 +9,7 @@ from typing import Any
 from ..errors import InputError
 from .export import add_export_options, export_after_run, export_outputs
 from .options import (
+    add_camera_options,
     add_command,
     add_run_options,
     add_tracker_options,
@@ -54,6 +55,7 @@ def add_parser(commands: Any) -> None:
     demo.add_argument("--noise", type=float_in(0.0, 100.0), default=2.0, help="sensor noise sigma, grey levels (0-100)")
     demo.add_argument("--blur", type=float_in(0.0, 50.0), default=0.6, help="optical blur sigma, pixels (0-50)")
     add_run_options(demo, "demo")
+    add_camera_options(demo)
     add_export_options(demo, "the scene rendered again")
     demo.set_defaults(func=cmd_demo)
 

@@ -9,6 +9,7 @@ from typing import Any
 
 from .export import add_export_options, export_after_run, export_outputs
 from .options import (
+    add_camera_options,
     add_command,
     add_run_options,
     add_tracker_options,
@@ -68,6 +69,7 @@ def add_parser(commands: Any) -> None:
         help="also save the processed frames losslessly (raw.mkv + timestamps) for frame-exact replay",
     )
     add_run_options(live, "live")
+    add_camera_options(live)
     add_export_options(live, "the frames --record saved in raw.mkv; needs --record")
     live.set_defaults(func=cmd_live)
 

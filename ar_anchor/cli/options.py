@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -80,6 +81,27 @@ def viewer_url(text: str) -> str:
         parsed.port  # noqa: B018 - raises ValueError on a malformed port
     except ValueError:
         raise argparse.ArgumentTypeError(f"bad port in {text!r}") from None
+    return text
+
+
+_CAMERA_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
+
+
+def camera_name(text: str) -> str:
+    """An argparse type: a camera's name, one entity path part (``cameras/<name>/`` in the recording):
+    1-64 ASCII letters, digits, ``_`` and ``-``, starting with a letter or digit."""
+    if not _CAMERA_NAME.fullmatch(text):
+        raise argparse.ArgumentTypeError(
+            f"expected a camera name such as left or cam_2 (1-64 letters, digits, _ and -, starting with a "
+            f"letter or digit: one part of the recording's entity paths), got {text!r}"
+        )
+    return text
+
+
+def recording_id(text: str) -> str:
+    """An argparse type: a rerun recording id, any non-empty string."""
+    if not text:
+        raise argparse.ArgumentTypeError("empty recording id (give the id every camera's process shares, e.g. lab)")
     return text
 
 
@@ -165,6 +187,28 @@ def add_viewer_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_camera_options(parser: argparse.ArgumentParser) -> None:
+    """--recording-id and --name: several processes, one per camera, streaming into one recording (see
+    :mod:`ar_anchor.viz.recorder` and docs/usage.md, "Several cameras into one viewer")."""
+    parser.add_argument(
+        "--recording-id",
+        type=recording_id,
+        default=None,
+        metavar="ID",
+        help="the rerun recording id: every process given the same ID is one recording, in a viewer they all "
+        "stream to (--connect) and in their recording.rrd files opened together or merged (default: a new id)",
+    )
+    parser.add_argument(
+        "--name",
+        dest="camera_name",
+        type=camera_name,
+        default=None,
+        metavar="NAME",
+        help="this camera's name: its entities go under cameras/NAME/ in the recording (give each camera's "
+        "process its own); with --recording-id no viewer layout is sent (the viewer lays out every camera)",
+    )
+
+
 def add_tracker_options(parser: argparse.ArgumentParser) -> None:
     """--config, --dictionary, --marker-length and --no-filter: the tracker config and its overrides."""
     parser.add_argument(
@@ -192,17 +236,21 @@ def default_out(name: str) -> Path:
 
 def run_options(args: argparse.Namespace, name: str, **specific: Any):  # noqa: ANN201
     """The :class:`~ar_anchor.run.options.RunOptions` every run command takes from its options (frames,
-    viewer, annotated video, overlays), the recording named ``ar_anchor <name>``, plus ``specific``."""
+    viewer, annotated video, overlays, --recording-id and --name when the command has them), the recording
+    named ``ar_anchor <name>`` (shared: ``ar_anchor <ID>``, the same in every process), plus ``specific``."""
     from ..errors import InputError
     from ..run.options import RunOptions
 
     if getattr(args, "serve_port", None) is not None and not getattr(args, "serve", False):
         raise InputError("--serve-port is the port of --serve's web viewer: give --serve too")
+    shared_id = getattr(args, "recording_id", None)
     return RunOptions(
         max_frames=args.max_frames,
         spawn=args.spawn,
         connect=args.connect,
-        recording_name=f"ar_anchor {name}",
+        recording_name=f"ar_anchor {shared_id if shared_id is not None else name}",
+        recording_id=shared_id,
+        camera_name=getattr(args, "camera_name", None),
         video_out=args.video_out,
         overlays=not args.no_overlay,
         **specific,

@@ -11,6 +11,7 @@ from typing import Any
 from ..errors import EXIT_FAILURE, printable
 from .export import add_export_options, export_after_run, export_outputs
 from .options import (
+    add_camera_options,
     add_command,
     add_run_options,
     add_tracker_options,
@@ -40,23 +41,29 @@ def add_parser(commands: Any) -> None:
     replay.add_argument(
         "source", metavar="SOURCE", help="video file, image folder, or a quoted glob such as 'shots/*.png'"
     )
-    replay.add_argument(
+    add_replay_options(replay)
+    add_run_options(replay, "replay")
+    add_camera_options(replay)
+    add_export_options(replay, "SOURCE decoded again")
+    replay.set_defaults(func=cmd_replay)
+
+
+def add_replay_options(parser: argparse.ArgumentParser) -> None:
+    """--camera, the tracker options, --fps and --causal: how a recording is replayed (``replay``, ``batch``)."""
+    parser.add_argument(
         "--camera",
         type=Path,
         default=None,
         help="camera YAML (default: camera.yml beside SOURCE, as `live --record` writes it)",
     )
-    add_tracker_options(replay)
-    replay.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of image folders (default 30)")
-    replay.add_argument(
+    add_tracker_options(parser)
+    parser.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of image folders (default 30)")
+    parser.add_argument(
         "--causal",
         action="store_true",
         help="decide each frame from the frames before it only (what live produces; one pass) instead of "
         "with the whole recording",
     )
-    add_run_options(replay, "replay")
-    add_export_options(replay, "SOURCE decoded again")
-    replay.set_defaults(func=cmd_replay)
 
 
 def _replay_camera(args: argparse.Namespace) -> Path:

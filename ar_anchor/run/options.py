@@ -21,6 +21,8 @@ class RunOptions:
     spawn: bool = False
     connect: str | None = None  # a running rerun viewer's gRPC URL
     recording_name: str = "ar_anchor"
+    recording_id: str | None = None  # shared with other processes: one recording (default: a new random id)
+    camera_name: str | None = None  # this camera's entities under cameras/<name>/ (default: the tree unprefixed)
     record_raw: bool = False  # also write raw.mkv (lossless) + timestamps
     record_fps: float = 30.0
     video_out: Path | None = None  # write the annotated (overlay) video here

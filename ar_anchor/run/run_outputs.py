@@ -132,6 +132,8 @@ class RunOutputs:
             spawn=options.spawn,
             connect=options.connect,
             recording_name=options.recording_name,
+            camera_name=options.camera_name,
+            recording_id=options.recording_id,
             overlay_models=renderer.models_for if renderer is not None and options.overlays else None,
         )
         self.image_logging = "jpeg"

@@ -54,7 +54,9 @@ RUN_PLOTS = (
 )
 
 
-def run_blueprint(*, overlay_image: bool = False, framing: Framing | None = None) -> rrb.Blueprint:
+def run_blueprint(
+    *, overlay_image: bool = False, framing: Framing | None = None, root: str | None = None
+) -> rrb.Blueprint:
     """A tracker run: the camera with the AR overlay as the main view, the 3D scene beside it, the plots in
     a column on the right, the tracker's events below.
 
@@ -68,13 +70,22 @@ def run_blueprint(*, overlay_image: bool = False, framing: Framing | None = None
     frames the whole scene), a decimetre grid gives scale. The plots have no legend over their data
     (hovering a line names it); the ambiguity plot shows 1..5 (values near 1 are the ambiguous ones; the
     data itself is not clipped).
+
+    ``root``: the run's entities are under it (a named camera's, ``cameras/<name>``: :class:`~.sinks.Recording`),
+    and so is every origin and contents rule here; the views' names say the camera's name.
     """
+
+    def at(path: str) -> str:
+        return f"{root}/{path}" if root else path
+
+    projected = [rule.replace(" /world", f" /{at('world')}") for rule in PROJECTED]
+    named = f" ({root.rsplit('/', 1)[-1]})" if root else ""
     camera_views = [
-        rrb.Spatial2DView(origin="world/camera", contents=list(PROJECTED), name="AR overlay"),
-        rrb.Spatial2DView(origin="world/camera", contents="$origin/**", name="Camera"),
+        rrb.Spatial2DView(origin=at("world/camera"), contents=projected, name=f"AR overlay{named}"),
+        rrb.Spatial2DView(origin=at("world/camera"), contents="$origin/**", name=f"Camera{named}"),
     ]
     if overlay_image:
-        camera_views.append(rrb.Spatial2DView(origin="camera/overlay", name="Overlay image"))
+        camera_views.append(rrb.Spatial2DView(origin=at("camera/overlay"), name=f"Overlay image{named}"))
     eye = None
     if framing is not None:
         eye = rrb.EyeControls3D(
@@ -82,7 +93,7 @@ def run_blueprint(*, overlay_image: bool = False, framing: Framing | None = None
         )
     plots = [
         rrb.TimeSeriesView(
-            origin=origin,
+            origin=at(origin),
             name=title,
             plot_legend=rrb.PlotLegend(visible=False),
             axis_y=rrb.ScalarAxis(range=(1.0, 5.0)) if origin == "metrics/ambiguity" else None,
@@ -92,17 +103,17 @@ def run_blueprint(*, overlay_image: bool = False, framing: Framing | None = None
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
-                rrb.Tabs(*camera_views, active_tab="AR overlay"),
+                rrb.Tabs(*camera_views, active_tab=f"AR overlay{named}"),
                 rrb.Spatial3DView(
-                    origin="world",
-                    name="3D scene",
+                    origin=at("world"),
+                    name=f"3D scene{named}",
                     line_grid=rrb.LineGrid3D(visible=True, spacing=0.1),
                     eye_controls=eye,
                 ),
                 rrb.Vertical(*plots),
                 column_shares=[4, 3, 2],
             ),
-            rrb.TextLogView(origin="events", name="Tracker events"),
+            rrb.TextLogView(origin=at("events"), name=f"Tracker events{named}"),
             row_shares=[5, 1],
         ),
         collapse_panels=True,

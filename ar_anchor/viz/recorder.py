@@ -43,6 +43,18 @@ A target that is gone (no longer in a frame's results) is cleared once, on that 
 entity above that is its own; it is drawn again when it comes back. The anchor's shape is the
 ``world`` frame itself and stays.
 
+Several cameras, one recording: a recorder given a ``camera_name`` (``--name``) puts the whole tree above
+under ``cameras/<name>/`` (``cameras/left/world/camera``, ``cameras/left/metrics/...``,
+``cameras/left/events``), so that processes streaming into one recording (the same ``recording_id``,
+``--recording-id``) never write the same entity. Each camera's ``world`` is its own anchor's frame, and
+every ``cameras/<name>/world`` sits at the recording's origin: in a 3D view of ``cameras`` the worlds
+coincide, which is right when the cameras anchor on the same target (the same marker or board, first seen)
+and meaningless otherwise; each camera's own views (``cameras/<name>/world``, its pinhole) are right
+either way. The layout: without a name, :func:`.blueprints.run_blueprint` as above; a named camera alone
+(no ``recording_id``), the same layout under its prefix; a named camera sharing a recording sends none,
+since the viewer keeps one blueprint per application and each process's own would replace the
+others' (the viewer's automatic layout shows every camera's views).
+
 Timelines: ``frame`` (sequence) and ``time`` (seconds since the stream's start).
 Rerun places pixel *corners* at integers, OpenCV pixel *centres*: 2D positions are shifted by
 half a pixel (see :mod:`.sinks`), and so is the pinhole's principal point, so overlays sit exactly on
@@ -97,7 +109,9 @@ class RerunRecorder:
     """Logs frames and tracker results to an ``.rrd`` file and/or a viewer (spawned, or ``connect``: its URL).
 
     ``overlay_models``: a target -> its overlay models in the target frame, drawn in the 3D scene
-    (given when the run draws overlays).
+    (given when the run draws overlays). ``camera_name``: the camera's own subtree (``cameras/<name>/``) and
+    ``recording_id``: the recording it shares with other processes (see the module doc: no layout is sent
+    when both are given).
     """
 
     def __init__(
@@ -110,14 +124,25 @@ class RerunRecorder:
         connect: str | None = None,
         recording_name: str = "ar_anchor",
         overlay_models: Callable[[TargetResult], list[Any]] | None = None,
+        camera_name: str | None = None,
+        recording_id: str | None = None,
     ) -> None:
         self.settings = settings or RecordingConfig()
         self.camera = camera
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
         self.overlay_models = overlay_models
-        blueprint = run_blueprint(overlay_image=self.settings.overlay_images)
+        self.root = f"cameras/{camera_name}" if camera_name else None
+        self._sends_layout = not (camera_name and recording_id)  # a shared recording's layout is not one camera's
+        blueprint = self._layout() if self._sends_layout else None
         self.recording = Recording(
-            "ar_anchor", path=rrd_path, spawn=spawn, connect=connect, blueprint=blueprint, name=recording_name
+            "ar_anchor",
+            path=rrd_path,
+            spawn=spawn,
+            connect=connect,
+            blueprint=blueprint,
+            name=recording_name,
+            recording_id=recording_id,
+            root=self.root,
         )
         self.series = SeriesBuffer(self.recording, self.settings.metrics_every)
         self._part_started = time.monotonic()
@@ -140,6 +165,10 @@ class RerunRecorder:
         self._notes_due = bool(self._part_notes)
         self._last_check = time.monotonic()
         self._log_static_camera(camera)
+
+    def _layout(self, framing: Framing | None = None) -> Any:
+        """The run's layout (its 3D eye at ``framing``), under :attr:`root`."""
+        return run_blueprint(overlay_image=self.settings.overlay_images, framing=framing, root=self.root)
 
     @property
     def parts(self) -> list[Path]:
@@ -429,12 +458,14 @@ class RerunRecorder:
     def _frame_targets(self, labels: list[tuple[str, np.ndarray, float]], world_from_camera: Pose) -> None:
         """The layout again, its 3D eye framed on the targets placed now (``labels``), from the camera's side."""
         self._framed = True
+        if not self._sends_layout:
+            return
         framing = Framing.on(
             np.array([position for _, position, _ in labels]),
             np.array([length for _, _, length in labels]),
             world_from_camera.tvec,
         )
-        self.recording.send_blueprint(run_blueprint(overlay_image=self.settings.overlay_images, framing=framing))
+        self.recording.send_blueprint(self._layout(framing))
 
     def _log_labels(self, labels: list[tuple[str, np.ndarray, float]]) -> None:
         """Every target's name at its centre, one ``Points3D`` for all (``world/labels``, logged whole each

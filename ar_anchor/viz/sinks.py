@@ -47,6 +47,12 @@ class Recording:
     ``partial``: write ``.<name>.<pid>.tmp`` beside ``path`` and rename it to ``path`` on :meth:`close`
     (``keep``). ``blueprint`` is the viewer layout sent with the sinks, ``name`` the recording's name in
     the viewer; ``option`` (e.g. ``--rrd``) is put before the file's name in errors.
+
+    ``recording_id``: the recording's id (default: a new random one). Streams of the same application id and
+    recording id are one recording, whichever process logs them: in a viewer they all stream to, and in
+    their files opened together or merged (``rerun rrd merge``). ``root``: every entity logged through this
+    object is under this entity path (e.g. ``cameras/left``: ``events`` is ``cameras/left/events``), so that
+    processes sharing a recording never write the same entity; the caller's blueprint names the full paths.
     """
 
     def __init__(
@@ -60,8 +66,11 @@ class Recording:
         blueprint: rrb.Blueprint | None = None,
         name: str | None = None,
         option: str | None = None,
+        recording_id: str | None = None,
+        root: str | None = None,
     ) -> None:
-        self.stream = rr.RecordingStream(application_id)
+        self.stream = rr.RecordingStream(application_id, recording_id=recording_id)
+        self.root = root.strip("/") if root else None
         self.files: list[Path] = []  # the recording's files (final names), in order
         self._partial = partial
         self._option = option
@@ -178,6 +187,10 @@ class Recording:
             )
 
     # ------------------------------------------------------------------ logging primitives
+    def _at(self, entity: str) -> str:
+        """``entity`` under :attr:`root` (itself when there is none)."""
+        return f"{self.root}/{entity.lstrip('/')}" if self.root else entity
+
     def time(self, timeline: str, *, sequence: int | None = None, seconds: float | None = None) -> None:
         """Set the current position on ``timeline``: a ``sequence`` number or a duration in ``seconds``."""
         if sequence is not None:
@@ -187,16 +200,16 @@ class Recording:
 
     def log(self, entity: str, data: Any, *, static: bool = False) -> None:
         """Any rerun archetype (for the viz package's own loggers)."""
-        self.stream.log(entity, data, static=static)
+        self.stream.log(self._at(entity), data, static=static)
 
     def clear(self, entity: str, *, recursive: bool = False) -> None:
         """Clear ``entity`` (and its children when ``recursive``) from now on. Static data stays."""
-        self.stream.log(entity, rr.Clear(recursive=recursive))
+        self.stream.log(self._at(entity), rr.Clear(recursive=recursive))
 
     def scalar(self, entity: str, value: float | None) -> None:
         """One point of the time series ``entity``; None and non-finite values are skipped."""
         if value is not None and math.isfinite(value):
-            self.stream.log(entity, rr.Scalars(float(value)))
+            self.stream.log(self._at(entity), rr.Scalars(float(value)))
 
     @staticmethod
     def time_columns(*, frames: Sequence[int], seconds: Sequence[float]) -> list[rr.TimeColumn]:
@@ -208,24 +221,26 @@ class Recording:
         """Points of the time series ``entity`` at several times in one call: ``values[i]`` at the i-th row
         of ``times`` (:meth:`time_columns`)."""
         if len(values):
-            self.stream.send_columns(entity, indexes=times, columns=rr.Scalars.columns(scalars=np.asarray(values)))
+            self.stream.send_columns(
+                self._at(entity), indexes=times, columns=rr.Scalars.columns(scalars=np.asarray(values))
+            )
 
     def text(self, entity: str, text: str, *, warn: bool = False, static: bool = False) -> None:
         """A line of a text log, level INFO or WARN."""
         level = rr.TextLogLevel.WARN if warn else rr.TextLogLevel.INFO
-        self.stream.log(entity, rr.TextLog(text, level=level), static=static)
+        self.stream.log(self._at(entity), rr.TextLog(text, level=level), static=static)
 
     def markdown(self, entity: str, text: str, *, static: bool = True) -> None:
         """A markdown document."""
-        self.stream.log(entity, rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=static)
+        self.stream.log(self._at(entity), rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=static)
 
     def encoded_image(self, entity: str, data: bytes, media_type: str, *, static: bool = False) -> None:
         """An already encoded image (``image/jpeg``, ``image/png``)."""
-        self.stream.log(entity, rr.EncodedImage(contents=data, media_type=media_type), static=static)
+        self.stream.log(self._at(entity), rr.EncodedImage(contents=data, media_type=media_type), static=static)
 
     def image_file(self, entity: str, path: str | os.PathLike[str], *, static: bool = True) -> None:
         """An image file (PNG, JPEG), its type from its name."""
-        self.stream.log(entity, rr.EncodedImage(path=path), static=static)
+        self.stream.log(self._at(entity), rr.EncodedImage(path=path), static=static)
 
     def jpeg(self, entity: str, image: np.ndarray, *, quality: int, scale: float = 1.0) -> None:
         """``image`` (BGR) resized by ``scale`` and encoded as JPEG of ``quality``."""
@@ -250,7 +265,9 @@ class Recording:
         pixels = np.asarray(pixels)
         if not np.issubdtype(pixels.dtype, np.floating):
             pixels = pixels.astype(np.float64)
-        self.stream.log(entity, rr.Points2D((pixels + 0.5) * scale, radii=radius, colors=colours), static=static)
+        self.stream.log(
+            self._at(entity), rr.Points2D((pixels + 0.5) * scale, radii=radius, colors=colours), static=static
+        )
 
     def points3d(
         self,
@@ -263,7 +280,9 @@ class Recording:
         static: bool = False,
     ) -> None:
         """Points in 3D, optionally labelled."""
-        self.stream.log(entity, rr.Points3D(positions, radii=radius, colors=colours, labels=labels), static=static)
+        self.stream.log(
+            self._at(entity), rr.Points3D(positions, radii=radius, colors=colours, labels=labels), static=static
+        )
 
 
 def _disk_full(path: Path) -> bool:
