@@ -30,14 +30,15 @@ def add_parser(commands: Any) -> None:
     )
     bench.add_argument(
         "name",
-        choices=("stability", "boards", "overlay", "speed", "run", "real", "profile", "offline"),
+        choices=("stability", "boards", "overlay", "speed", "run", "real", "profile", "offline", "batch"),
         help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
         "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop; "
         "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p; "
         "real: relative-pose consistency of markers on one rigid sheet in a real video (tracker, its raw "
         "per-frame pick, plain OpenCV), default chessboard.avi from $AR_ANCHOR_REALDATA; profile: the tracker's CPU "
         "per stage and its costliest functions (cProfile) on a real video (the same --video options as real); "
-        "offline: the offline replay against --causal (time, memory over a long clip, chessboard.avi scores)",
+        "offline: the offline replay against --causal (time, memory over a long clip, chessboard.avi scores); "
+        "batch: 12 synthetic clips replayed in a loop of ar-anchor replay vs ar-anchor batch (local, --ray)",
     )
     bench.add_argument("--video", type=Path, default=None, help="real: the video (default: chessboard.avi)")
     bench.add_argument(
@@ -70,7 +71,8 @@ def add_parser(commands: Any) -> None:
         type=int_at_least(1),
         default=None,
         help="speed: frames per synthetic clip, chessboard.avi at most this (default 300; --quick 90); "
-        "run: frames of the encoded 1080p and 50-marker clips (default 600; --quick 150)",
+        "run: frames of the encoded 1080p and 50-marker clips (default 600; --quick 150); "
+        "batch: frames per clip (default 300; --quick 60)",
     )
     bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
     bench.add_argument(
@@ -140,6 +142,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if args.minutes is not None:
             command += f" --minutes {args.minutes:g}"
         write_offline_report(args.out, quick=args.quick, minutes=args.minutes, progress=progress, command=command)
+    elif args.name == "batch":
+        from ..bench.batch import write_batch_report
+
+        write_batch_report(args.out, quick=args.quick, frames=args.frames, progress=progress, command=command)
     elif args.name == "speed":
         from ..bench.speed import write_speed_report
 
@@ -192,6 +198,8 @@ def _checked_clips(args: argparse.Namespace) -> Any:
         return None
     if args.name == "profile" and args.clips is None:
         return None  # (--frames: the video's first frames only)
+    if args.name == "batch" and args.clips is None:
+        return None  # (--frames: frames per clip)
     if args.name not in ("speed", "run"):
         option = "--clips" if args.clips is not None else "--frames"
         raise InputError(f"{option}: only bench speed and bench run take it, not bench {args.name}")

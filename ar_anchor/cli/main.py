@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     import argparse
 
     from .. import __version__
-    from . import bench, demo, export, live, replay, tools, view
+    from . import batch, bench, demo, export, live, replay, tools, view
     from .options import add_common_options
 
     parser = argparse.ArgumentParser(
@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"ar-anchor {__version__}")
     add_common_options(parser, defaults=True)
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for command in (demo, replay, live, bench, export, view):
+    for command in (demo, replay, batch, live, bench, export, view):
         command.add_parser(commands)
     tools.add_parsers(commands)
     return parser
@@ -94,7 +94,7 @@ def _preload(command: str | None) -> None:
     trimesh (the overlay meshes) too: its optional imports (scipy, ...) sit in ``except BaseException``
     blocks, which would swallow a Ctrl-C raised while they load (a run that then ends with exit 0)."""
     try:
-        if command in ("demo", "replay", "live", "bench"):
+        if command in ("demo", "replay", "live", "bench", "batch"):
             import trimesh  # noqa: F401
             import trimesh.creation  # noqa: F401
 
