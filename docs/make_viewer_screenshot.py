@@ -37,10 +37,8 @@ names another binary).
 from __future__ import annotations
 
 import argparse
-import base64
 import functools
 import http.server
-import json
 import os
 import shutil
 import socket
@@ -50,7 +48,6 @@ import tempfile
 import threading
 import time
 import urllib.parse
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -58,22 +55,10 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
-CHROMIUM_FLAGS = (
-    "--headless",
-    "--no-sandbox",  # the machine runs as root
-    "--use-angle=swiftshader",  # WebGL on the CPU: no GPU here
-    "--enable-unsafe-swiftshader",
-    "--ignore-gpu-blocklist",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-    "--hide-scrollbars",
-)
+sys.path.insert(0, str(REPO))  # the DevTools driver is the browser test's (tests/browser.py)
+from tests.browser import Browser, BrowserError  # noqa: E402
 
-
-class ShotError(Exception):
-    """A step failed; the message says which, in one line."""
+ShotError = BrowserError  # a step failed; the message says which, in one line
 
 
 # ---------------------------------------------------------------------------------------------- recording
@@ -148,92 +133,6 @@ def find_chromium(explicit: str | None) -> str:
             return found
     wanted = explicit or " / ".join(CHROMIUM_NAMES)
     raise ShotError(f"Chromium not found ({wanted}): install it (apt-get install chromium) or pass --chromium PATH")
-
-
-class Browser:
-    """Headless Chromium driven over the DevTools protocol on a pipe (fds 3 and 4), one page."""
-
-    def __init__(self, binary: str, size: tuple[int, int], log_path: Path, profile: Path) -> None:
-        to_chrome_r, self._to_chrome = os.pipe()
-        self._from_chrome, from_chrome_w = os.pipe()
-
-        def child_fds() -> None:
-            os.dup2(to_chrome_r, 3)
-            os.dup2(from_chrome_w, 4)
-
-        width, height = size
-        args = [binary, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--window-size={width},{height}"]
-        self._log = open(log_path, "wb")  # noqa: SIM115 (closed in close())
-        self.proc = subprocess.Popen(
-            [*args, "--remote-debugging-pipe", "about:blank"],
-            pass_fds=(3, 4),
-            preexec_fn=child_fds,
-            stdin=subprocess.DEVNULL,
-            stdout=self._log,
-            stderr=self._log,
-        )
-        os.close(to_chrome_r)
-        os.close(from_chrome_w)
-        self._buffer = b""
-        self._next_id = 0
-        self.session = ""
-        target = self.send("Target.createTarget", {"url": "about:blank"})["targetId"]
-        self.session = self.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
-        metrics = {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False}
-        self.send("Emulation.setDeviceMetricsOverride", metrics)
-        self.send("Emulation.setEmulatedMedia", {"features": [{"name": "prefers-color-scheme", "value": "dark"}]})
-
-    def send(self, method: str, params: dict | None = None) -> dict:
-        """Call ``method`` (on the page once attached) and return its result; events are dropped."""
-        self._next_id += 1
-        message: dict = {"id": self._next_id, "method": method, "params": params or {}}
-        if self.session:
-            message["sessionId"] = self.session
-        os.write(self._to_chrome, json.dumps(message).encode() + b"\0")
-        for reply in self._replies():
-            if reply.get("id") == self._next_id:
-                if "error" in reply:
-                    raise ShotError(f"Chromium: {method}: {reply['error'].get('message', reply['error'])}")
-                return reply.get("result", {})
-        raise ShotError(f"Chromium exited during {method} (exit code {self.proc.poll()})")
-
-    def _replies(self) -> Iterator[dict]:
-        """The messages Chromium sends, as they come (NUL-separated JSON)."""
-        while True:
-            while b"\0" not in self._buffer:
-                chunk = os.read(self._from_chrome, 1 << 20)
-                if not chunk:
-                    return
-                self._buffer += chunk
-            raw, self._buffer = self._buffer.split(b"\0", 1)
-            yield json.loads(raw)
-
-    def evaluate(self, expression: str) -> object:
-        """The value of a JavaScript ``expression`` in the page (promises awaited)."""
-        result = self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True, "awaitPromise": True})
-        if "exceptionDetails" in result:
-            details = result["exceptionDetails"]
-            raise ShotError(f"in the page: {details.get('exception', {}).get('description', details.get('text'))}")
-        return result["result"].get("value")
-
-    def screenshot(self) -> np.ndarray:
-        """The page as a BGR image."""
-        data = base64.b64decode(self.send("Page.captureScreenshot", {"format": "png"})["data"])
-        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-
-    def close(self) -> None:
-        """Close Chromium (killed if it does not exit within 10 s)."""
-        try:
-            self.session = ""
-            self.send("Browser.close")
-        except (ShotError, OSError):
-            pass
-        try:
-            self.proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self._log.close()
 
 
 # ---------------------------------------------------------------------------------------------- viewer control
@@ -382,7 +281,7 @@ def take(rrd: Path, args: argparse.Namespace, work: Path) -> np.ndarray:
     print(f"viewer: {url}", flush=True)
     deadline = time.monotonic() + args.timeout
     log_path = work / "chromium.log"
-    browser = Browser(chromium, args.size, log_path, work / "profile")
+    browser = Browser(args.size, log_path, binary=chromium, profile=work / "profile", dark=True)
     try:
         browser.send("Page.navigate", {"url": url})
         first, last = wait_loaded(browser, deadline)

@@ -44,13 +44,25 @@ def find_chromium() -> str | None:
 
 
 class Browser:
-    """One headless page of ``size`` (width, height); :meth:`close` ends Chromium. Its log is ``log_path``."""
+    """One headless page of ``size`` (width, height); :meth:`close` ends Chromium. Its log is ``log_path``;
+    ``binary`` the Chromium to start (default: ``chromium`` on PATH), ``profile`` its user data directory (default:
+    a new temporary one), ``dark`` the page's preferred colour scheme. Also the driver of
+    ``docs/make_viewer_screenshot.py``."""
 
-    def __init__(self, size: tuple[int, int], log_path: Path) -> None:
-        binary = find_chromium()
+    def __init__(
+        self,
+        size: tuple[int, int],
+        log_path: Path,
+        *,
+        binary: str | None = None,
+        profile: Path | None = None,
+        dark: bool = False,
+    ) -> None:
+        binary = binary or find_chromium()
         if binary is None:
             raise BrowserError("chromium not found")
-        self._profile = tempfile.mkdtemp(prefix="ar_anchor_chromium_")
+        self._own_profile = profile is None  # removed on close
+        self._profile = str(profile) if profile is not None else tempfile.mkdtemp(prefix="ar_anchor_chromium_")
         to_chrome_r, self._to_chrome = os.pipe()
         self._from_chrome, from_chrome_w = os.pipe()
 
@@ -85,6 +97,9 @@ class Browser:
             self._session = self.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
             metrics = {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False}
             self.send("Emulation.setDeviceMetricsOverride", metrics)
+            if dark:
+                scheme = {"features": [{"name": "prefers-color-scheme", "value": "dark"}]}
+                self.send("Emulation.setEmulatedMedia", scheme)
         except BaseException:
             self.close()
             raise
@@ -113,6 +128,14 @@ class Browser:
             raw, self._buffer = self._buffer.split(b"\0", 1)
             yield json.loads(raw)
 
+    def evaluate(self, expression: str) -> object:
+        """The value of a JavaScript ``expression`` in the page (promises awaited)."""
+        result = self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True, "awaitPromise": True})
+        if "exceptionDetails" in result:
+            details = result["exceptionDetails"]
+            raise BrowserError(f"in the page: {details.get('exception', {}).get('description', details.get('text'))}")
+        return result["result"].get("value")
+
     def navigate(self, url: str) -> None:
         self.send("Page.navigate", {"url": url})
 
@@ -138,4 +161,5 @@ class Browser:
             except OSError:
                 pass
         self._log.close()
-        shutil.rmtree(self._profile, ignore_errors=True)
+        if self._own_profile:
+            shutil.rmtree(self._profile, ignore_errors=True)

@@ -31,7 +31,7 @@ from ..camera import CameraModel
 from ..config import demo_config
 from ..config.document import demo_toml
 from ..synthetic import Trajectory, demo_scene
-from .report import fmt, load_average, machine_info, report_head, write_json
+from .report import fmt, load_average, machine_info, machine_lines, report_head, write_json
 from .run import _cli, _encode_scene
 
 __all__ = ["CLIPS", "CLIP_FRAMES", "TARGET_SPEEDUP", "batch_markdown", "run_batch_benchmark", "write_batch_report"]
@@ -191,14 +191,8 @@ def batch_markdown(results: dict[str, Any], command: str) -> str:
         f"- **batch over the loop: {fmt(variants['batch'].get('speedup'))}x** (target >= {TARGET_SPEEDUP:g}x): "
         + ("-" if verdict is None else "**pass**" if verdict else "**FAIL**")
         + ".",
-        "",
-        "## Machine",
-        "",
-        f"{meta['processor']}, {meta['usable_cpus']} usable CPUs, Python {meta['python']}, OpenCV {meta['opencv']} "
-        f"({meta['opencv_threads']} threads). Load average at the start {meta['load_average_start']}, at the end "
-        f"{meta.get('load_average_end')}.",
-        "",
     ]
+    lines += machine_lines(meta)
     return "\n".join(lines)
 
 

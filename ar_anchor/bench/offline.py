@@ -40,7 +40,7 @@ from ..config import demo_config
 from ..config.document import demo_toml
 from ..synthetic import Trajectory, demo_scene
 from .real.scoring import read_poses_csv, score_rigid_sheet
-from .report import fmt, load_average, machine_info, report_head, write_json
+from .report import fmt, load_average, machine_info, machine_lines, report_head, write_json
 from .run import _cli, _encode_scene, _rss_mb
 from .speed.real_clip import chessboard_files
 
@@ -309,15 +309,7 @@ def offline_markdown(results: dict[str, Any], command: str) -> str:
     if "causal" in board:
         lines += _chessboard_lines(board, verdicts)
     meta = results["meta"]
-    lines += [
-        "",
-        "## Machine",
-        "",
-        f"{meta['processor']}, {meta['usable_cpus']} usable CPUs, Python {meta['python']}, OpenCV {meta['opencv']} "
-        f"({meta['opencv_threads']} threads). Load average at the start {meta['load_average_start']}, at the end "
-        f"{meta.get('load_average_end')}.",
-        "",
-    ]
+    lines += machine_lines(meta)
     return "\n".join(lines)
 
 

@@ -98,6 +98,19 @@ def report_head(title: str, produced: str, notes: Any = ()) -> list[str]:
     return lines
 
 
+def machine_lines(meta: dict[str, Any]) -> list[str]:
+    """A benchmark report's last section: the machine (:func:`machine_info`) and its load at the start and end."""
+    return [
+        "",
+        "## Machine",
+        "",
+        f"{meta['processor']}, {meta['usable_cpus']} usable CPUs, Python {meta['python']}, OpenCV {meta['opencv']} "
+        f"({meta['opencv_threads']} threads). Load average at the start {meta['load_average_start']}, at the end "
+        f"{meta.get('load_average_end')}.",
+        "",
+    ]
+
+
 def fmt(value: Any, digits: int = 2) -> str:
     """A table cell: floats with ``digits`` decimals, other values as they print, "-" for None and
     non-finite floats."""

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import CameraModel
-from .report import fmt, load_average, machine_info, report_head
+from .report import fmt, load_average, machine_info, machine_lines, report_head
 from .speed import render_clip, speed_scene
 from .speed.real_clip import chessboard_files
 from .speed.scenes import FIFTY_MARKER_M, FIFTY_SIZE, fifty_markers_scene
@@ -350,15 +350,7 @@ def run_markdown(results: dict[str, Any], command: str) -> str:
     if "memory" in results:
         lines += _memory_lines(results["memory"], results["long_live"])
     meta = results["meta"]
-    lines += [
-        "",
-        "## Machine",
-        "",
-        f"{meta['processor']}, {meta['usable_cpus']} usable CPUs, Python {meta['python']}, OpenCV {meta['opencv']} "
-        f"({meta['opencv_threads']} threads). Load average at the start {meta['load_average_start']}, at the end "
-        f"{meta['load_average_end']}.",
-        "",
-    ]
+    lines += machine_lines(meta)
     return "\n".join(lines)
 
 
