@@ -4,6 +4,7 @@ the web viewer in headless Chromium showing the overlay in the camera view."""
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import shutil
@@ -254,6 +255,14 @@ def test_view_web_listens_on_127_0_0_1_only_and_ends_on_ctrl_c(tmp_path):
     assert not _listening_pids_addresses(_descendants(process.pid) | {process.pid}), "the server outlived the command"
 
 
+def _run_ended(out: Path) -> bool:
+    """Has the run in ``out`` ended (its summary.json no longer says ``running``)?"""
+    try:
+        return json.loads((out / "summary.json").read_text())["status"] != "running"
+    except (OSError, ValueError, KeyError):
+        return False
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("ss") is None, reason="ss (iproute2) not installed")
 def test_serve_streams_the_run_and_keeps_serving_until_ctrl_c(tmp_path):
@@ -263,8 +272,8 @@ def test_serve_streams_the_run_and_keeps_serving_until_ctrl_c(tmp_path):
     try:
         url = _read_url(process)
         deadline = time.monotonic() + 120
-        while not (out / "summary.json").exists() and process.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.5)
+        while not _run_ended(out) and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)  # (summary.json exists from the run's start, saying "running")
         time.sleep(1.0)
         # the run is over, its files complete; the viewer still serves, on 127.0.0.1 only
         assert process.poll() is None, "the command ended with the run"
