@@ -40,6 +40,7 @@ __all__ = [
     "write_json_atomic",
 ]
 
+WRONG_DEG = 10.0  # a rotation error above this is a flip: a wrong frame (as the benchmarks count it)
 POSES_CSV_HEADER = (
     "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
     "raw_rvec_x,raw_rvec_y,raw_rvec_z,raw_tvec_x,raw_tvec_y,raw_tvec_z,reproj_px,ambiguity"
@@ -430,6 +431,9 @@ class RunSummary:
                 entry["frames_in_view"] = stats.in_view
                 entry["detection_rate_in_view"] = stats.measured_in_view / stats.in_view if stats.in_view else None
                 entry["rotation_error_deg"] = _percentiles(stats.rotation_errors_deg)
+                # frames whose output is a flip (rotation error > WRONG_DEG) among those with an output and truth
+                entry["wrong_frames"] = sum(error > WRONG_DEG for error in stats.rotation_errors_deg)
+                entry["frames_scored"] = len(stats.rotation_errors_deg)
                 entry["translation_error_pct"] = _percentiles(stats.translation_errors_pct)
             targets[name] = entry
         return {

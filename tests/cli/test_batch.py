@@ -301,8 +301,18 @@ def test_a_row_holds_the_summary_figures_and_with_rigid_sheet_the_pair_flips(tmp
         "fps": 40.0,
         "ground_truth": True,
         "targets": {
-            "marker:0": {"states": states, "rotation_error_deg": {"median": 0.5, "p95": 2.0}},
-            "marker:1": {"states": states, "rotation_error_deg": {"median": 0.5, "p95": 3.0}},
+            "marker:0": {
+                "states": states,
+                "rotation_error_deg": {"median": 0.5, "p95": 2.0},
+                "wrong_frames": 1,
+                "frames_scored": 16,
+            },
+            "marker:1": {
+                "states": states,
+                "rotation_error_deg": {"median": 0.5, "p95": 3.0},
+                "wrong_frames": 3,
+                "frames_scored": 24,
+            },
         },
     }
     (tmp_path / "summary.json").write_text(json.dumps(summary))
@@ -317,5 +327,5 @@ def test_a_row_holds_the_summary_figures_and_with_rigid_sheet_the_pair_flips(tmp
     assert row["tracked_fraction"] == 0.75 and row["ambiguous_fraction"] == 0.15
     assert row["lost_fraction"] == pytest.approx(0.1)
     assert json.loads(row["targets"])["marker:1"]["lost"] == 2
-    assert row["rotation_error_p95_deg"] == 3.0 and row["wrong_frame_rate"] is None
+    assert row["rotation_error_p95_deg"] == 3.0 and row["wrong_frame_rate"] == 0.1
     assert row["pair_frames"] == 15 and row["pair_flip_pct"] == 0.0

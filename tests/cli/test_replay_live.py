@@ -534,6 +534,8 @@ def test_live_synthetic_device_writes_outputs(tmp_path):
     # the synthetic device carries its ground truth through the live path
     assert summary["ground_truth"] is True
     assert summary["targets"]["marker:0"]["rotation_error_deg"]["median"] < 2.0
+    # (a flip count: the batch table's wrong-frame rate is made of it)
+    assert summary["targets"]["marker:0"]["wrong_frames"] == 0 < summary["targets"]["marker:0"]["frames_scored"] <= 15
     rows = read_poses(out / "poses.csv")
     assert len({int(r["frame"]) for r in rows}) == 15  # indices may skip frames the camera dropped
     verify_rrd(out / "recording.rrd")
