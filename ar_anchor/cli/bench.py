@@ -30,7 +30,7 @@ def add_parser(commands: Any) -> None:
     )
     bench.add_argument(
         "name",
-        choices=("stability", "boards", "overlay", "speed", "run", "real", "profile", "offline", "batch"),
+        choices=("stability", "boards", "overlay", "speed", "run", "real", "profile", "offline", "batch", "groups"),
         help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
         "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop; "
         "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p; "
@@ -38,7 +38,8 @@ def add_parser(commands: Any) -> None:
         "per-frame pick, plain OpenCV), default chessboard.avi from $AR_ANCHOR_REALDATA; profile: the tracker's CPU "
         "per stage and its costliest functions (cProfile) on a real video (the same --video options as real); "
         "offline: the offline replay against --causal (time, memory over a long clip, chessboard.avi scores); "
-        "batch: 12 synthetic clips replayed in a loop of ar-anchor replay vs ar-anchor batch (local, --ray)",
+        "batch: 12 synthetic clips replayed in a loop of ar-anchor replay vs ar-anchor batch (local, --ray); "
+        "groups: each marker of a hand-held sheet alone vs its learned rigid group (wrong frames, jitter)",
     )
     bench.add_argument("--video", type=Path, default=None, help="real: the video (default: chessboard.avi)")
     bench.add_argument(
@@ -146,6 +147,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from ..bench.batch import write_batch_report
 
         write_batch_report(args.out, quick=args.quick, frames=args.frames, progress=progress, command=command)
+    elif args.name == "groups":
+        from ..bench.groups import write_groups_report
+
+        write_groups_report(args.out, quick=args.quick, progress=progress, command=command, config=config)
     elif args.name == "speed":
         from ..bench.speed import write_speed_report
 

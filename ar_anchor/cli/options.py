@@ -227,6 +227,12 @@ def add_tracker_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the raw per-frame pipeline: lower-error IPPE solution, no flip resolution or smoothing",
     )
+    parser.add_argument(
+        "--learn-groups",
+        action="store_true",
+        help="[groups] learn: markers whose relative pose holds over frames and viewpoints are solved together "
+        "as a learned board, board:group-N (see docs/groups.md)",
+    )
 
 
 def default_out(name: str) -> Path:
@@ -271,6 +277,7 @@ def load_tracker_config(args: argparse.Namespace, *, demo: bool = False):  # noq
             dictionary=getattr(args, "dictionary", None),
             marker_length_m=getattr(args, "marker_length", None),
             filter_enabled=False if getattr(args, "no_filter", False) else None,
+            learn_groups=True if getattr(args, "learn_groups", False) else None,
         )
     except ConfigValueError as err:  # the library names the key; the user typed a flag
         flag = _OVERRIDE_FLAGS.get(err.key)

@@ -30,6 +30,7 @@ __all__ = [
     "OVERLAY_KINDS",
     "DetectorConfig",
     "FilterConfig",
+    "GroupsConfig",
     "MarkersConfig",
     "OverlayConfig",
     "PoseConfig",
@@ -266,6 +267,35 @@ class FilterConfig:
 
 
 @dataclass(frozen=True)
+class GroupsConfig:
+    """Rigid groups learned while tracking (see :mod:`ar_anchor.track.groups`): lone markers whose relative
+    pose holds over many frames and viewpoints are solved jointly, like a board. Opt-in (``learn``)."""
+
+    learn: bool = key(
+        False,
+        "learn rigid groups of lone markers seen together and solve each group jointly (--learn-groups); "
+        "two objects that only stand still together look rigid too: a member that moves leaves",
+    )
+    min_frames: int = key(45, "frames a pair's relative pose must hold before the two join", in_range(5, 1_000_000))
+    min_viewpoint_deg: float = key(
+        10.0,
+        "... seen from viewpoints this far apart: the camera's tilt from the markers' normal, degrees",
+        in_range(0.0, 180.0),
+    )
+    agreement: float = key(
+        0.8, "... in at least this share of the frames that saw both since that pose first appeared", in_range(0.5, 1.0)
+    )
+    agree_px: float = key(
+        1.0,
+        "a frame supports a pair's relative pose when both markers' corners fit it jointly within this RMS, pixels",
+        positive,
+    )
+    leave_frames: int = key(
+        5, "a member its group's joint pose rejects this many measured frames in a row leaves", in_range(1, 100_000)
+    )
+
+
+@dataclass(frozen=True)
 class RecordingConfig:
     """What the rerun recording keeps (see :mod:`ar_anchor.viz`)."""
 
@@ -373,6 +403,7 @@ class TrackerConfig:
     )
     pose: PoseConfig = key(None, "", shape="table", factory=PoseConfig)
     filter: FilterConfig = key(None, "", shape="table", factory=FilterConfig)
+    groups: GroupsConfig = key(None, "", shape="table", factory=GroupsConfig)
     recording: RecordingConfig = key(None, "", shape="table", factory=RecordingConfig)
     overlays: tuple[OverlayConfig, ...] = key(
         None,
@@ -411,7 +442,12 @@ class TrackerConfig:
         return not self.markers.ids or marker_id in self.markers.ids
 
     def with_overrides(
-        self, *, dictionary: str | None = None, marker_length_m: float | None = None, filter_enabled: bool | None = None
+        self,
+        *,
+        dictionary: str | None = None,
+        marker_length_m: float | None = None,
+        filter_enabled: bool | None = None,
+        learn_groups: bool | None = None,
     ) -> TrackerConfig:
         """Copy with values from elsewhere (the command line) applied and validated. A bad value is a
         :class:`~ar_anchor.config.keys.ConfigValueError` naming the key it would set (``[detector]
@@ -419,6 +455,8 @@ class TrackerConfig:
         config = self
         if filter_enabled is not None:
             config = dataclasses.replace(config, filter=dataclasses.replace(config.filter, enabled=filter_enabled))
+        if learn_groups is not None:
+            config = dataclasses.replace(config, groups=dataclasses.replace(config.groups, learn=learn_groups))
         if dictionary is not None:
             config = config._with_dictionary(dictionary)
         if marker_length_m is not None:

@@ -208,6 +208,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     boards = _read_boards(root, detector.dictionary, limit, markers.lengths_m)
     pose = read_table(root, "pose")
     filter_config = read_table(root, "filter")
+    groups = read_table(root, "groups")
     recording = read_table(root, "recording")
     overlays = _read_overlays(root)
     root.done(_names(TrackerConfig))
@@ -218,6 +219,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
         boards=boards,
         pose=pose,
         filter=filter_config,
+        groups=groups,
         recording=recording,
         overlays=overlays,
         source=path,

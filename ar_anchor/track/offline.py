@@ -46,8 +46,9 @@ from ..targets import TargetId, TrackState
 from .filtering import TargetTrack, TrackUpdate, so3_exp, so3_log
 from .filtering.track import EVIDENCE_DOUBTS
 from .gaps import Bridge
+from .groups import members_from_groups
 from .spool import FrameStore, SpoolStore
-from .tracker import FrameResult, TargetResult, update_tracks
+from .tracker import FrameResult, TargetResult, as_member, update_tracks
 
 __all__ = ["FrameStore", "OfflinePlan", "SpoolStore", "decide", "offline_results", "smooth"]
 
@@ -227,6 +228,8 @@ def offline_results(frames: FrameStore[FrameResult], plan: OfflinePlan) -> Itera
         for name, target in bridge.gaps(position, set(decided.names)):
             targets[name] = target
         ordered = {name: targets[name] for name in TargetId.ordered(targets)}
+        if causal.groups:  # learned rigid groups: members of a tracked group take its pose
+            ordered = members_from_groups(ordered, causal.groups, causal.camera, as_member, plan.config)
         previous = dataclasses.replace(causal, targets=ordered, causal_targets=causal.targets)
         yield previous
 

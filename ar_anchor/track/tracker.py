@@ -35,6 +35,7 @@ from .filtering import (
     margin_scale,
     unit_covariances_of,
 )
+from .groups import GroupLearner, members_from_groups
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
@@ -107,6 +108,8 @@ class FrameResult:
     measurements: dict[TargetId, MarkerPose | BoardPose] = field(default_factory=dict)
     # offline replay: what the live (causal) filter said of this frame, for comparison (None otherwise)
     causal_targets: dict[TargetId, TargetResult] | None = None
+    # learned rigid groups (``[groups] learn``): each group's layout this frame, group_from_marker by member
+    groups: dict[TargetId, dict[int, Pose]] = field(default_factory=dict)
 
 
 class Tracker:
@@ -128,6 +131,7 @@ class Tracker:
         self._cameras: dict[tuple[int, int], CameraModel] = {camera.size: camera}
         self.tracks: dict[TargetId, TargetTrack] = {}
         self.board_solvers = [BoardSolver(board, config.pose.board_inlier_px) for board in config.boards]
+        self.groups = GroupLearner(config) if config.groups.learn else None
         # ROI tracking state: the last two frames' corners per marker id
         self._last_corners: dict[int, np.ndarray] = {}
         self._before_corners: dict[int, np.ndarray] = {}
@@ -153,14 +157,25 @@ class Tracker:
         except ValueError:
             return False
         if target.is_board:
-            return any(b.name == target.name for b in self.config.boards)
+            return self._board_solver(target) is not None or any(b.name == target.name for b in self.config.boards)
         return self.config.tracks_marker(target.marker_id)
+
+    def _board_solver(self, target: TargetId) -> BoardSolver | None:
+        """The solver of a configured board or of a learned group (None: neither, or a group since dissolved)."""
+        for solver in self.board_solvers:
+            if solver.target == target:
+                return solver
+        group = self.groups.groups.get(target) if self.groups is not None else None
+        return group.solver if group is not None else None
 
     def outline(self, target: str) -> np.ndarray:
         """The target's marker squares (K, 4, 3) in its own frame (for drawing it in 3D)."""
         target = TargetId.parse(target)
         if target.is_board:
-            return next(s.outline for s in self.board_solvers if s.name == target.name)
+            solver = self._board_solver(target)
+            if solver is None:
+                raise KeyError(f"{target}: no such board or learned group")
+            return solver.outline
         return marker_corners_in_marker(self.config.marker_length(target.marker_id))[None]
 
     def _detect(
@@ -365,11 +380,26 @@ class Tracker:
                 failures.append(board)
             elif board is not None:
                 measured[board.target] = board
+        events: dict[TargetId, list[str]] = {}
+        layouts: dict[TargetId, dict[int, Pose]] = {}
+        if self.groups is not None:
+            events = self.groups.learn(measured, camera)
+            for name, solved_group in self.groups.solve(
+                detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, image=frame.image
+            ).items():
+                if isinstance(solved_group, PoseFailure):
+                    failures.append(solved_group)
+                else:
+                    measured[name] = solved_group
+            layouts = self.groups.layouts()
+            self._end_group_tracks()
         t2 = time.perf_counter()
         if self.config.filter.enabled:
             targets = self._filter(measured, frame.timestamp_ns, camera, blurred)
         else:
             targets = {name: self._raw_result(name, measured[name], camera) for name in TargetId.ordered(measured)}
+        if self.groups is not None:
+            targets = self._settle_groups(targets, measured, layouts, events, camera)
         t3 = time.perf_counter()
         latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
         return FrameResult(
@@ -383,7 +413,40 @@ class Tracker:
             blurred=blurred,
             detail=self._detail,
             measurements=measured,
+            groups=layouts,
         )
+
+    def _end_group_tracks(self) -> None:
+        """Forget the tracks of learned groups that are gone (merged into another, or dissolved)."""
+        assert self.groups is not None
+        configured = {solver.target for solver in self.board_solvers}
+        for name in [n for n in self.tracks if n.is_board and n not in configured and n not in self.groups.groups]:
+            del self.tracks[name]
+
+    def _settle_groups(
+        self,
+        targets: dict[TargetId, TargetResult],
+        measured: dict[TargetId, MarkerPose | BoardPose],
+        layouts: dict[TargetId, dict[int, Pose]],
+        events: dict[TargetId, list[str]],
+        camera: CameraModel,
+    ) -> dict[TargetId, TargetResult]:
+        """After the filter: members of a tracked group take its pose (:func:`members_from_groups`); the
+        groups count agreements (members leave, groups dissolve: a dissolved group's track ends); every
+        group event goes on its target's result (or is logged only, when that target has none)."""
+        assert self.groups is not None
+        targets = members_from_groups(targets, layouts, camera, as_member, self.config.filter)
+        tracked = {name for name, target in targets.items() if target.state is TrackState.TRACKED}
+        for name, messages in self.groups.settle(measured, tracked if self.config.filter.enabled else None).items():
+            events.setdefault(name, []).extend(messages)
+        self._end_group_tracks()
+        for name, messages in events.items():
+            for message in messages:
+                log.info("%s: %s", name, message)
+            if name in targets:
+                extra = tuple(TrackEvent("group", message) for message in messages)
+                targets[name] = dataclasses.replace(targets[name], events=(*targets[name].events, *extra))
+        return targets
 
     def _filter(
         self, measured: dict[TargetId, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
@@ -442,7 +505,8 @@ class Tracker:
         if not name.is_board:
             length = self.config.marker_length(name.marker_id)
         else:
-            length = next(s.marker_length_m for s in self.board_solvers if s.target == name)
+            solver = self._board_solver(name)
+            length = solver.marker_length_m if solver is not None else math.nan
         if solved is None:
             return TargetResult(
                 target=name,
@@ -483,6 +547,13 @@ class Tracker:
         self._last_corners, self._before_corners, self._seen = {}, {}, {}
         self._frames_since_full = self._frames_since_thorough = 0
         self._last_size = None
+        if self.groups is not None:
+            self.groups = GroupLearner(self.config)
+
+
+def as_member(target: TargetResult, pose: Pose, reproj_px: float) -> TargetResult:
+    """A group member's result with its group's pose (see :func:`~.groups.members_from_groups`)."""
+    return dataclasses.replace(target, pose=pose, state=TrackState.TRACKED, reproj_px=reproj_px)
 
 
 def _every_4th_pixel(image: np.ndarray) -> np.ndarray:

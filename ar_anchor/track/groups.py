@@ -1,0 +1,631 @@
+"""Rigid groups learned while tracking: lone markers that move together are solved together.
+
+Users stick several markers on one sheet, wall or object and rarely write a board layout for them. Each
+lone marker then flips and jitters alone, though its neighbours, seen in the same frame, settle its pose.
+With ``[groups] learn = true`` (``--learn-groups``) the tracker learns such groups as it goes:
+
+1. **Pairs** (:class:`_Pair`). For two lone markers measured in one frame, every combination of their
+   validated IPPE solutions gives a candidate relative pose ``i_from_j`` (up to four: the planar flip of
+   each). The true one recurs frame after frame; a flipped one moves with the viewpoint. A pair keeps a
+   few *modes* (running means of candidates). A frame supports a mode when the two markers' eight
+   corners fit it jointly: one camera pose, refined by Levenberg-Marquardt from either of the first
+   marker's solutions, reprojects them within ``[groups] agree_px`` RMS. A joint fit, not a comparison
+   of the two lone poses: a lone marker's rotation is often degrees off, the pair's corners are not.
+   When no mode fits, the frame's candidates start new ones. Each marker is paired with its
+   :data:`_NEIGHBOURS` nearest in the image (the cost stays linear in the markers seen).
+2. **Rigid** when a mode has held ``min_frames`` frames, in at least ``agreement`` of the frames that saw
+   both since it first appeared, from viewpoints at least ``min_viewpoint_deg`` apart (the camera's tilt
+   away from the marker's normal, the part of the viewpoint the planar flip leaves, :func:`_viewpoint`;
+   10th to 90th percentile: a still camera's noise is no viewpoint). Several viewpoints are what tells
+   the true relative rotation from the flipped ones, which move with the viewpoint. Two objects
+   moving independently keep changing their relative pose, so no mode of theirs lasts. Two objects that
+   only stand still together look exactly like one rigid object (nothing in the images tells them apart
+   while nothing moves): they are grouped, the event says the evidence is a constant pose across
+   viewpoints, and the first one to move leaves (4).
+3. **Groups**: rigid pairs link markers into groups (a rigid pair with a member adds a marker; one
+   between two groups merges them). A group's layout is its members' poses in its anchor marker's frame
+   (the anchor: the group's first marker); a layout whose markers lie in one plane (within
+   :data:`_PLANAR_SHARE` of its extent, normals within :data:`_PLANAR_TILT_DEG`) is made exactly planar, so the
+   group is solved as a planar board (both IPPE solutions kept). Each group is a target of its own,
+   ``board:group-N``, solved like a board (:class:`~.pose.BoardSolver`: RANSAC over its members'
+   corners, then LM on the inliers) and passed through the same flip filter. Its layout is refined from
+   the frames it is solved in: each member's measured pose in the group's frame, averaged.
+4. **Members** (:func:`members_from_groups`): once its layout has been refined at least once (from
+   frames where three members or more fixed the group's pose), a member measured this frame and used
+   by its group's ``tracked`` joint pose outputs the group's pose composed with its layout (state ``tracked``);
+   otherwise its own lone track's output stands (its lone track keeps running, so a member that leaves
+   goes on as before). A member the joint pose rejects ``leave_frames`` measured frames in a row leaves
+   (its pair evidence with the group is forgotten); a group left with one marker, or whose joint pose
+   agrees with fewer than two of the members it sees for ``leave_frames`` frames, dissolves.
+
+Joins, leaves, merges and dissolutions are :class:`~.filtering.TrackEvent` (kind ``group``) on the
+group's and the members' results, so they reach the log and rerun's ``events``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..camera import CameraModel
+from ..config import BoardConfig, FilterConfig, GroupsConfig, TrackerConfig
+from ..geometry import Pose, marker_corners_in_marker, mean_rotation
+from ..targets import TargetId, TrackState
+from .filtering import decisive, margin_scale
+from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, reprojection_rms
+
+__all__ = ["GROUP_PREFIX", "GroupLearner", "LearnedGroup", "members_from_groups"]
+
+log = logging.getLogger(__name__)
+
+GROUP_PREFIX = "group-"
+_NEIGHBOURS = 4  # each marker is paired with this many of its nearest neighbours in the image
+_MAX_MODES = 6  # relative poses a pair keeps in mind at once
+_PLANAR_SHARE = 0.02  # out-of-plane spread (RMS) below this share of the layout's extent: a planar group
+_PLANAR_TILT_DEG = 10.0  # ... and no marker's normal farther than this from the plane's
+_NEW_MODE_DEG, _NEW_MODE_M = 2.0, 0.003  # a candidate this near an existing mode starts no new one
+_TESTED_MODES = 2  # the modes (most supported first) a frame is fitted against
+_MODE_FRAMES = 150  # frames of candidates a mode keeps for its consensus
+_VOTE_DEG = 4.0  # candidates of two frames this near vote for the same relative rotation
+_VOTE_SHARE = 0.8  # the winner must have a candidate in this share of the frames ...
+_VOTE_RIVAL = 0.6  # ... and no rotation farther than twice _VOTE_DEG from it more than this share of its votes
+_PLANAR_FIT = 0.1  # a square fitted to the second marker in the first's plane within this share of its side
+_REFINE_EVERY = 15  # frames between layout refinements
+_REFINE_MIN_INLIERS = 3  # a member's pose in the group frame is sampled only when others fix the group
+
+
+_Fits = Callable[["_Mode"], "tuple[int, np.ndarray] | None"]
+
+
+class _Mode:
+    """One recurring relative pose of a pair: the candidates of the frames that fit it, their consensus
+    (:meth:`_consensus`), its support and the spread of the viewpoints it was seen from."""
+
+    __slots__ = ("born", "count", "decided", "directions", "frames", "rotation", "spread_deg", "translation")
+
+    def __init__(self, rotation: np.ndarray, translation: np.ndarray, born: int) -> None:
+        self.frames: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=_MODE_FRAMES)
+        self.frames.append((rotation[None], translation[None], np.zeros(1, bool)))
+        self.rotation, self.translation = rotation, translation
+        self.count, self.born = 1, born
+        self.decided = False  # the frames' candidates agree on one relative rotation (see _consensus)
+        self.directions: deque[float] = deque(maxlen=_MODE_FRAMES)  # viewpoints: tilts (see _viewpoint)
+        self.spread_deg = 0.0  # how far apart: 10th to 90th percentile of the tilts (a still camera's noise is none)
+
+    def add(
+        self, rotations: np.ndarray, translations: np.ndarray, direction: np.ndarray | None, planar: np.ndarray
+    ) -> None:
+        """A frame that fits: its candidates (the first marker's better-fitting solution with each of the
+        second's, and the planar one when there is one: ``planar`` marks it), and the camera's direction in
+        the first marker's frame at the joint fit."""
+        self.frames.append((rotations, translations, planar))
+        self.count += 1
+        if self.count <= 10 or self.count % 5 == 0 or not self.decided:
+            self._consensus()
+        if direction is not None:
+            self.directions.append(_viewpoint(direction))
+            if len(self.directions) >= 5 and len(self.directions) % 5 == 0:
+                low, high = np.percentile(np.array(self.directions), [10, 90])
+                self.spread_deg = max(self.spread_deg, float(high - low))
+
+    def _consensus(self) -> None:
+        """The relative rotation most frames have a candidate near (within :data:`_VOTE_DEG`: the flipped
+        candidates move with the viewpoint, the true one stays), then the mean rotation and the median
+        translation of each frame's candidate nearest it."""
+        rotations = np.concatenate([r for r, _, _ in self.frames])
+        translations = np.concatenate([t for _, t, _ in self.frames])
+        planar = np.concatenate([p for _, _, p in self.frames])
+        frame_of = np.concatenate([np.full(len(r), k) for k, (r, _, _) in enumerate(self.frames)])
+        cosines = (np.einsum("nab,mab->nm", rotations, rotations) - 1.0) / 2.0
+        near = cosines > math.cos(math.radians(_VOTE_DEG))
+        one_hot = np.zeros((len(rotations), len(self.frames)), bool)
+        one_hot[np.arange(len(rotations)), frame_of] = True
+        support = ((near.astype(np.int32) @ one_hot) > 0).sum(axis=1)
+        best = int(np.argmax(support))
+        rival = support[cosines[best] < math.cos(math.radians(2 * _VOTE_DEG))]  # rotations clearly elsewhere
+        self.decided = support[best] >= _VOTE_SHARE * len(self.frames) and (
+            len(rival) == 0 or rival.max() <= _VOTE_RIVAL * support[best]
+        )
+        chosen = {}
+        for n in np.flatnonzero(near[best]):  # per frame, its candidate nearest the winner (the planar first)
+            k = frame_of[n]
+            if k not in chosen or (planar[n], cosines[best, n]) > (planar[chosen[k]], cosines[best, chosen[k]]):
+                chosen[k] = n
+        picked = np.array(sorted(chosen.values()))
+        self.rotation = mean_rotation(list(rotations[picked]))
+        self.translation = np.median(translations[picked], axis=0)
+
+    def pose(self) -> Pose:
+        return Pose.from_matrix(self.rotation, self.translation)
+
+
+@dataclass
+class _Pair:
+    """Evidence about one pair of markers ``(i, j)``, ``i < j``: the frames that saw both, and the modes
+    of their relative pose ``i_from_j``."""
+
+    seen: int = 0
+    modes: list[_Mode] = field(default_factory=list)
+
+    def observe(self, rotations: np.ndarray, translations: np.ndarray, first_of: np.ndarray, fits: _Fits) -> None:
+        """One frame's candidates (K, 3, 3), (K, 3), which of the first marker's solutions each is made of
+        (K,), and ``fits(mode)``: (the first marker's solution that fits better, the camera's direction at
+        that fit) if this frame's corners fit the mode, else None."""
+        self.seen += 1
+        for mode in sorted(self.modes, key=lambda m: -m.count)[:_TESTED_MODES]:
+            fit = fits(mode)
+            if fit is not None:
+                solution, direction = fit
+                mine = (first_of == solution) | (first_of < 0)
+                mode.add(rotations[mine], translations[mine], direction, planar=first_of[mine] < 0)
+                return
+        for k in range(len(rotations)):  # nothing fits: each candidate may be the start of the true pose
+            if any(_near(mode, rotations[k], translations[k]) for mode in self.modes):
+                continue
+            if len(self.modes) >= _MAX_MODES:
+                self.modes.remove(min(self.modes, key=lambda mode: (mode.count, -mode.born)))
+            mode = _Mode(rotations[k].copy(), translations[k].copy(), self.seen)
+            self.modes.append(mode)
+            fit = fits(mode)
+            if fit is not None and fit[1] is not None:
+                mode.directions.append(_viewpoint(fit[1]))
+
+    def rigid(self, settings: GroupsConfig) -> _Mode | None:
+        """The mode that makes the pair rigid (see the module doc), if any."""
+        if not self.modes:
+            return None
+        mode = max(self.modes, key=lambda m: m.count)
+        share = mode.count / max(self.seen - mode.born + 1, 1)
+        enough = mode.count >= settings.min_frames and share >= settings.agreement and mode.decided
+        return mode if enough and mode.spread_deg >= settings.min_viewpoint_deg else None
+
+
+def _planar_candidate(first: MarkerPose, second: MarkerPose, camera: CameraModel) -> Pose | None:
+    """``first_from_second`` if both markers lie in one plane: the second's corners taken into the first's
+    plane through the homography of the first's four corners (unique: the planar flip is a choice made only
+    when that homography is split into a rotation and a translation), and a square of the second's side
+    fitted to them (in-plane turn and shift). None when they do not form such a square (not one plane)."""
+    pixels = np.concatenate([first.corners_in_image.reshape(4, 2), second.corners_in_image.reshape(4, 2)])
+    undistorted = pixels.astype(np.float64)
+    if camera.dist_or_none is not None:  # (the homography holds between undistorted points)
+        k = camera.camera_matrix
+        undistorted = cv2.undistortPoints(pixels.reshape(-1, 1, 2), k, camera.dist_or_none, P=k).reshape(-1, 2)
+    square_first = marker_corners_in_marker(first.length_m)[:, :2]
+    try:
+        homography = cv2.getPerspectiveTransform(undistorted[:4].astype(np.float32), square_first.astype(np.float32))
+    except cv2.error:
+        return None
+    points = cv2.perspectiveTransform(undistorted[4:].reshape(-1, 1, 2), homography).reshape(4, 2)
+    square = marker_corners_in_marker(second.length_m)[:, :2]
+    centre = points.mean(axis=0)
+    u, _, vt = np.linalg.svd((square - square.mean(axis=0)).T @ (points - centre))
+    turn = (u @ vt).T
+    if np.linalg.det(turn) < 0:
+        return None  # a mirrored square: not the second marker seen in the first's plane
+    residual = float(np.sqrt(np.mean(np.sum((square @ turn.T + centre - points) ** 2, axis=1))))
+    if not np.isfinite(residual) or residual > _PLANAR_FIT * second.length_m:
+        return None
+    rotation = np.eye(3)
+    rotation[:2, :2] = turn
+    return Pose.from_matrix(rotation, np.array([centre[0], centre[1], 0.0]))
+
+
+def _viewpoint(direction: np.ndarray) -> float:
+    """How far from the marker's normal the camera looks at it (degrees), from the camera's direction (unit,
+    in the marker's frame). The planar flip mirrors the direction about the line of sight (its azimuth
+    turns, its tilt stays about the same), so the tilt is the part of the viewpoint both solutions agree on."""
+    return math.degrees(math.acos(float(np.clip(direction[2], -1.0, 1.0))))
+
+
+def _near(mode: _Mode, rotation: np.ndarray, translation: np.ndarray) -> bool:
+    cosine = (float(np.vdot(mode.rotation, rotation)) - 1.0) / 2.0
+    near_turn = math.degrees(math.acos(min(1.0, max(-1.0, cosine)))) < _NEW_MODE_DEG
+    return near_turn and float(np.linalg.norm(mode.translation - translation)) < _NEW_MODE_M
+
+
+@dataclass
+class LearnedGroup:
+    """A group of markers found rigid together: its layout (``group_from_marker`` per member, the anchor's
+    the identity) and the board solver built from it."""
+
+    number: int
+    anchor: int
+    layout: dict[int, Pose]
+    lengths: dict[int, float]
+    dictionary: str
+    solver: BoardSolver = field(init=False)
+    rejected: dict[int, int] = field(default_factory=dict)  # member -> measured frames in a row rejected
+    disagreeing: int = 0  # frames in a row the joint pose agreed with fewer than two seen members
+    samples: dict[int, list[np.ndarray]] = field(default_factory=dict)  # member -> [rotation sum, t sum, n]
+    since_refined: int = 0
+    refinements: int = 0  # layout refinements from the group's own joint poses (see GroupLearner._sample)
+
+    def __post_init__(self) -> None:
+        self.rebuild()
+
+    @property
+    def name(self) -> str:
+        return f"{GROUP_PREFIX}{self.number}"
+
+    @property
+    def target(self) -> TargetId:
+        return TargetId.board(self.name)
+
+    def rebuild(self) -> None:
+        """Flatten a planar layout and build its board solver (after a join, a leave or a refinement)."""
+        self.layout = _flattened(self.layout, self.lengths)
+        corners = []
+        for marker_id, pose in sorted(self.layout.items()):
+            points = pose.apply(marker_corners_in_marker(self.lengths[marker_id]))
+            corners.append((marker_id, tuple(tuple(float(v) for v in p) for p in points)))
+        board = BoardConfig(name=self.name, kind="custom", layout=tuple(corners), dictionary=self.dictionary)
+        inlier_px = self.solver.inlier_px if hasattr(self, "solver") else 3.0
+        self.solver = BoardSolver(board, inlier_px)
+
+    def describe(self) -> str:
+        return ", ".join(str(i) for i in sorted(self.layout))
+
+
+def _flattened(layout: dict[int, Pose], lengths: dict[int, float]) -> dict[int, Pose]:
+    """``layout`` made exactly planar when its markers nearly share one plane (see the module doc): each
+    marker's centre projected onto the best-fit plane and its normal turned onto the plane's."""
+    if len(layout) < 2:
+        return layout
+    normals = np.stack([pose.rotation[:, 2] for pose in layout.values()])
+    mean_normal = normals.sum(axis=0)
+    mean_normal /= max(float(np.linalg.norm(mean_normal)), 1e-12)
+    corners = np.concatenate([pose.apply(marker_corners_in_marker(lengths[i])) for i, pose in layout.items()])
+    centroid = corners.mean(axis=0)
+    _, singular, vt = np.linalg.svd(corners - centroid, full_matrices=False)
+    normal = vt[2] if float(vt[2] @ mean_normal) >= 0 else -vt[2]
+    extent = float(np.ptp(corners @ vt[0]))
+    out_of_plane = singular[2] / math.sqrt(len(corners))
+    tilt = max(math.degrees(math.acos(float(np.clip(n @ normal, -1.0, 1.0)))) for n in normals)
+    if out_of_plane > _PLANAR_SHARE * extent or tilt > _PLANAR_TILT_DEG:
+        return layout
+    flat = {}
+    for marker_id, pose in layout.items():
+        rotation = pose.rotation
+        axis = np.cross(rotation[:, 2], normal)
+        sine, cosine = float(np.linalg.norm(axis)), float(rotation[:, 2] @ normal)
+        turn = np.eye(3)
+        if sine > 1e-12:
+            k = axis / sine
+            skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+            turn = np.eye(3) + sine * skew + (1 - cosine) * skew @ skew
+        centre = pose.tvec - float((pose.tvec - centroid) @ normal) * normal
+        flat[marker_id] = Pose.from_matrix(turn @ rotation, centre)
+    return flat
+
+
+class GroupLearner:
+    """The groups of one stream (see the module doc). Per frame: :meth:`learn` from the lone markers'
+    solutions, :meth:`solve` every group, then (after the filter) :meth:`settle` with the results."""
+
+    def __init__(self, config: TrackerConfig) -> None:
+        self.settings = config.groups
+        self.dictionary = config.detector.dictionary
+        self.inlier_px = config.pose.board_inlier_px
+        self.config = config
+        self.pairs: dict[tuple[int, int], _Pair] = {}
+        self.groups: dict[TargetId, LearnedGroup] = {}
+        self.member_of: dict[int, TargetId] = {}
+        self._numbers = itertools.count(1)
+        self._reserved = {board.name for board in config.boards}
+        self._camera: CameraModel | None = None  # this frame's (the layouts' refinement needs it)
+
+    # ------------------------------------------------------------------ learning
+    def learn(self, measured: dict[TargetId, MarkerPose | BoardPose], camera: CameraModel) -> dict[TargetId, list[str]]:
+        """Take this frame's lone-marker solutions as evidence; form, grow and merge groups. Returns the
+        events, by the target they concern."""
+        self._camera = camera
+        lone = {name.marker_id: solved for name, solved in measured.items() if isinstance(solved, MarkerPose)}
+        if len(lone) < 2:
+            return {}
+        ids = sorted(lone)
+        centres = np.stack([lone[i].corners_in_image.reshape(4, 2).mean(axis=0) for i in ids])
+        distances = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+        nearest = np.argsort(distances, axis=1)[:, 1 : _NEIGHBOURS + 1]
+        pairs = {(min(ids[a], ids[int(b)]), max(ids[a], ids[int(b)])) for a in range(len(ids)) for b in nearest[a]}
+        events: dict[TargetId, list[str]] = {}
+        for first, second in sorted(pairs):
+            group = self.member_of.get(first)
+            if group is not None and self.member_of.get(second) == group:
+                continue  # already together
+            pair = self.pairs.setdefault((first, second), _Pair())
+            self._observe(pair, lone[first], lone[second], camera)
+            mode = pair.rigid(self.settings)
+            if mode is not None:
+                self._join(first, second, mode, pair, events)
+        return events
+
+    def _observe(self, pair: _Pair, first: MarkerPose, second: MarkerPose, camera: CameraModel) -> None:
+        rotations, translations, first_of = [], [], []
+        for a, mine in enumerate(first.hypotheses):
+            ra, ta = mine.pose.rotation, mine.pose.tvec
+            for theirs in second.hypotheses:
+                rotations.append(ra.T @ theirs.pose.rotation)
+                translations.append(ra.T @ (theirs.pose.tvec - ta))
+                first_of.append(a)
+        planar = _planar_candidate(first, second, camera)
+        if planar is not None:  # (both markers in one plane: a candidate the planar flip has no part in)
+            rotations.append(planar.rotation)
+            translations.append(planar.tvec)
+            first_of.append(-1)
+        image = np.concatenate([first.corners_in_image.reshape(4, 2), second.corners_in_image.reshape(4, 2)])
+        square = marker_corners_in_marker(second.length_m)
+
+        def fits(mode: _Mode) -> tuple[int, np.ndarray] | None:
+            points = np.concatenate([first.points_in_target, square @ mode.rotation.T + mode.translation])
+            tried = sorted(
+                (_joint_fit(points, image, h.pose, camera)[::-1] + (a,) for a, h in enumerate(first.hypotheses)),
+                key=lambda fit: fit[0],
+            )
+            rms, pose, solution = tried[0]
+            if rms > self.settings.agree_px:
+                return None
+            centre = pose.camera_centre()
+            return solution, centre / max(float(np.linalg.norm(centre)), 1e-12)
+
+        pair.observe(np.stack(rotations), np.stack(translations), np.array(first_of), fits)
+
+    def _join(self, first: int, second: int, mode: _Mode, pair: _Pair, events: dict[TargetId, list[str]]) -> None:
+        """A rigid pair: a new group, a marker added to one, or two groups merged."""
+        first_from_second = mode.pose()
+        evidence = (
+            f"relative pose held in {mode.count} of {pair.seen - mode.born + 1} frames seen together, "
+            f"viewpoints {mode.spread_deg:.0f} deg apart (a constant pose across viewpoints: two objects "
+            "standing still together look the same; a member that moves leaves)"
+        )
+        g1, g2 = self.member_of.get(first), self.member_of.get(second)
+        if g1 is None and g2 is None:
+            group = LearnedGroup(
+                next(self._numbers),
+                first,
+                {first: Pose.identity(), second: first_from_second},
+                {i: self.config.marker_length(i) for i in (first, second)},
+                self.dictionary,
+            )
+            while group.name in self._reserved:
+                group.number = next(self._numbers)
+                group.rebuild()
+            self.groups[group.target] = group
+            self.member_of.update({first: group.target, second: group.target})
+            events.setdefault(group.target, []).append(f"formed from markers {first} and {second}: {evidence}")
+            return
+        if g1 is not None and g2 is not None:  # merge the second group into the first
+            a, b = self.groups[g1], self.groups[g2]
+            a_from_b = a.layout[first].compose(first_from_second).compose(b.layout[second].inverse())
+            for marker_id, pose in b.layout.items():
+                a.layout[marker_id] = a_from_b.compose(pose)
+                a.lengths[marker_id] = b.lengths[marker_id]
+                self.member_of[marker_id] = g1
+            del self.groups[g2]
+            a.samples.clear()
+            a.rebuild()
+            events.setdefault(g1, []).append(
+                f"merged {b.name} (markers {b.describe()}) through markers {first} and {second}: {evidence}"
+            )
+            events.setdefault(g2, []).append(f"merged into {a.name}")
+            return
+        if g1 is not None:
+            group, new = self.groups[g1], second
+            group.layout[new] = group.layout[first].compose(first_from_second)
+        else:
+            assert g2 is not None
+            group, new = self.groups[g2], first
+            group.layout[new] = group.layout[second].compose(first_from_second.inverse())
+        group.lengths[new] = self.config.marker_length(new)
+        self.member_of[new] = group.target
+        group.rebuild()
+        events.setdefault(group.target, []).append(f"marker {new} joined: {evidence}")
+
+    # ------------------------------------------------------------------ solving
+    def solve(
+        self,
+        ids: np.ndarray,
+        corners: np.ndarray,
+        camera: CameraModel,
+        max_reproj_px: float,
+        image: np.ndarray | None = None,
+    ) -> dict[TargetId, BoardPose | PoseFailure]:
+        """Every group's joint pose from this frame's detections (groups none of whose markers is seen: none)."""
+        out: dict[TargetId, BoardPose | PoseFailure] = {}
+        for name, group in self.groups.items():
+            solved = group.solver.solve(ids, corners, camera, max_reproj_px, image=image)
+            if solved is not None:
+                out[name] = solved
+        return out
+
+    def layouts(self) -> dict[TargetId, dict[int, Pose]]:
+        """The layout (``group_from_marker`` by member) of each group whose members take its pose
+        (:func:`members_from_groups`): those whose layout has been refined from their own joint poses at
+        least once (a layout straight from pair evidence is not yet trusted over the members' own poses;
+        a group never solved from three markers or more never is)."""
+        return {name: dict(group.layout) for name, group in self.groups.items() if group.refinements}
+
+    # ------------------------------------------------------------------ after the filter
+    def settle(
+        self, measured: dict[TargetId, MarkerPose | BoardPose], tracked: set[TargetId] | None = None
+    ) -> dict[TargetId, list[str]]:
+        """Count each seen member's agreement with its group's joint pose this frame; members rejected
+        ``leave_frames`` times in a row leave, groups that cannot agree dissolve; refine the layouts from
+        the groups the filter says are ``tracked`` (``tracked``; None: every group solved). Returns the
+        events, by the target they concern."""
+        events: dict[TargetId, list[str]] = {}
+        for name, group in list(self.groups.items()):
+            solved = measured.get(name)
+            seen = [i for i in group.layout if TargetId.marker(i) in measured]
+            if not isinstance(solved, BoardPose):
+                if len(seen) >= 2 and name in measured:  # a failed joint solve over two or more members
+                    group.disagreeing += 1
+                    if group.disagreeing >= self.settings.leave_frames:
+                        self._dissolve(group, f"its markers {group.describe()} no longer agree", events)
+                continue
+            used = set(solved.markers_used)
+            group.disagreeing = group.disagreeing + 1 if len(seen) >= 2 and len(used) < 2 else 0
+            if group.disagreeing >= self.settings.leave_frames:
+                self._dissolve(group, f"its markers {group.describe()} no longer agree", events)
+                continue
+            for marker_id in seen:
+                if marker_id in used or len(used) < 2:
+                    group.rejected.pop(marker_id, None)
+                    continue
+                group.rejected[marker_id] = group.rejected.get(marker_id, 0) + 1
+                if group.rejected[marker_id] >= self.settings.leave_frames:
+                    self._leave(group, marker_id, events)
+            if name in self.groups and len(used) >= _REFINE_MIN_INLIERS and (tracked is None or name in tracked):
+                self._sample(group, solved, measured)
+        return events
+
+    def _leave(self, group: LearnedGroup, marker_id: int, events: dict[TargetId, list[str]]) -> None:
+        del group.layout[marker_id]
+        group.rejected.pop(marker_id, None)
+        group.samples.pop(marker_id, None)
+        del self.member_of[marker_id]
+        for other in group.layout:  # its evidence with the group is forgotten: it must earn its place again
+            self.pairs.pop((min(marker_id, other), max(marker_id, other)), None)
+        message = f"marker {marker_id} left: its pose no longer fits the group's ({self.settings.leave_frames} frames)"
+        events.setdefault(group.target, []).append(message)
+        events.setdefault(TargetId.marker(marker_id), []).append(f"left {group.name}")
+        if len(group.layout) < 2:
+            self._dissolve(group, "one marker left", events)
+            return
+        if marker_id == group.anchor:  # the group's frame stays where it was: only the anchor's name moves
+            group.anchor = min(group.layout)
+        group.rebuild()
+
+    def _dissolve(self, group: LearnedGroup, why: str, events: dict[TargetId, list[str]]) -> None:
+        for marker_id in list(group.layout):
+            self.member_of.pop(marker_id, None)
+            for other in group.layout:
+                if other > marker_id:
+                    self.pairs.pop((marker_id, other), None)
+            events.setdefault(TargetId.marker(marker_id), []).append(f"{group.name} dissolved")
+        self.groups.pop(group.target, None)
+        events.setdefault(group.target, []).append(f"dissolved: {why}")
+
+    def _sample(self, group: LearnedGroup, solved: BoardPose, measured: dict[TargetId, MarkerPose | BoardPose]) -> None:
+        """Each inlier member's pose in the group's frame this frame, summed; every :data:`_REFINE_EVERY`
+        frames the layout becomes those means (the anchor's frame stays). A planar group's member: its
+        corners' rays met with the group's plane (flip-free, and no lone depth in it: a small marker's
+        distance is its least sure part); another's: its solution nearer the group's."""
+        group_pose = solved.best.pose
+        group_from_camera = group_pose.inverse()
+        camera = self._camera
+        for marker_id in solved.markers_used:
+            lone = measured.get(TargetId.marker(marker_id))
+            if not isinstance(lone, MarkerPose) or marker_id == group.anchor:
+                continue
+            sample = None
+            if group.solver.planar and camera is not None:
+                sample = _on_plane(lone, group_pose, group.layout[group.anchor], camera)
+            if sample is None:
+                expected = group_pose.compose(group.layout[marker_id]).rotation
+                nearest = min(lone.hypotheses, key=lambda h: float(np.vdot(h.pose.rotation, -expected)))
+                sample = group_from_camera.compose(nearest.pose)
+            sums = group.samples.setdefault(marker_id, [np.zeros((3, 3)), np.zeros(3), 0])
+            sums[0] = sums[0] + sample.rotation
+            sums[1] = sums[1] + sample.tvec
+            sums[2] += 1
+        group.since_refined += 1
+        if group.since_refined < _REFINE_EVERY:
+            return
+        group.since_refined = 0
+        changed = False
+        for marker_id, (rotation_sum, translation_sum, count) in group.samples.items():
+            if count >= 5 and marker_id in group.layout:
+                group.layout[marker_id] = Pose.from_matrix(mean_rotation([rotation_sum]), translation_sum / count)
+                changed = True
+        if changed:
+            group.refinements += 1
+            group.rebuild()
+
+
+def _on_plane(lone: MarkerPose, camera_from_group: Pose, group_from_anchor: Pose, camera: CameraModel) -> Pose | None:
+    """``group_from_marker`` of a marker of a planar group from its corners: their rays (undistorted) met
+    with the group's plane (the anchor's x-y plane), and a square of its side fitted there."""
+    pixels = lone.corners_in_image.reshape(4, 1, 2).astype(np.float64)
+    rays = cv2.undistortPoints(pixels, camera.camera_matrix, camera.dist_or_none).reshape(4, 2)
+    rays = np.column_stack([rays, np.ones(4)])
+    camera_from_anchor = camera_from_group.compose(group_from_anchor)
+    normal, origin = camera_from_anchor.rotation[:, 2], camera_from_anchor.tvec
+    along = rays @ normal
+    if np.any(np.abs(along) < 1e-9):
+        return None
+    points = rays * ((origin @ normal) / along)[:, None]  # in the camera frame
+    if np.any(points[:, 2] <= 0):
+        return None
+    in_plane = (points - origin) @ camera_from_anchor.rotation[:, :2]  # the anchor's x, y
+    square = marker_corners_in_marker(lone.length_m)[:, :2]
+    centre = in_plane.mean(axis=0)
+    u, _, vt = np.linalg.svd(square.T @ (in_plane - centre))
+    turn = (u @ vt).T
+    if np.linalg.det(turn) < 0:
+        return None
+    rotation = np.eye(3)
+    rotation[:2, :2] = turn
+    anchor_from_marker = Pose.from_matrix(rotation, np.array([centre[0], centre[1], 0.0]))
+    return group_from_anchor.compose(anchor_from_marker)
+
+
+def _decided(group, config: FilterConfig) -> bool:  # noqa: ANN001 - a TargetResult (tracker imports this module)
+    """Does this frame's joint solve of ``group`` alone decide its planar flip?"""
+    hypotheses = group.hypotheses
+    if len(hypotheses) < 2:
+        return len(hypotheses) == 1
+    better, worse = hypotheses[0].reproj_px, hypotheses[1].reproj_px
+    sigma = max(config.corner_noise_px, better * math.sqrt(2.0))
+    return decisive(better, worse, config, sigma, margin_scale(max(group.inliers, 4)))
+
+
+def _joint_fit(points: np.ndarray, image: np.ndarray, start: Pose, camera: CameraModel) -> tuple[Pose, float]:
+    """The camera pose refined (LM) from ``start`` on ``points`` (N, 3) and ``image`` (N, 2), and its RMS
+    reprojection error (inf when the solver fails)."""
+    rvec, tvec = start.rvec.reshape(3, 1).copy(), start.tvec.reshape(3, 1).copy()
+    try:
+        rvec, tvec = cv2.solvePnPRefineLM(points, image, camera.camera_matrix, camera.dist_or_none, rvec, tvec)
+    except cv2.error:
+        return start, math.inf
+    pose = Pose(rvec.ravel(), tvec.ravel())
+    return pose, (reprojection_rms(pose, points, image, camera) if pose.is_finite() else math.inf)
+
+
+def members_from_groups(
+    targets: dict,
+    layouts: dict[TargetId, dict[int, Pose]],
+    camera: CameraModel | None,
+    replace: Callable,
+    config: FilterConfig,
+) -> dict:
+    """``targets`` (a frame's :class:`~.tracker.TargetResult` by name) with each member that its group's
+    ``tracked`` joint pose used this frame given the group's pose composed with its layout, state
+    ``tracked`` (``replace(target, pose, reproj_px)`` makes the new result), when this frame's joint solve
+    decides the group's own planar flip (:func:`~.filtering.decisive`, the board margins): a group far
+    away can be as ambiguous as a marker, and a member is never moved onto a flip its group only holds by
+    the evidence of other frames. Others are unchanged."""
+    out = dict(targets)
+    for name, layout in layouts.items():
+        group = targets.get(name)
+        if group is None or group.state is not TrackState.TRACKED or not _decided(group, config):
+            continue
+        for marker_id in group.markers_used:
+            member = TargetId.marker(marker_id)
+            own = targets.get(member)
+            if own is None or not own.measured or marker_id not in layout:
+                continue
+            pose = group.pose.compose(layout[marker_id])
+            reproj = math.nan
+            if camera is not None and own.corners_in_image is not None:
+                reproj = reprojection_rms(
+                    pose, marker_corners_in_marker(own.length_m), own.corners_in_image.reshape(-1, 2), camera
+                )
+            out[member] = replace(own, pose, reproj)
+    return out
