@@ -103,6 +103,8 @@ def _preload(command: str | None) -> None:
             from ..tools import calibrate  # noqa: F401
         elif command == "markers":
             from ..tools import markers  # noqa: F401
+        elif command == "map":
+            from ..tools.map import command as map_command  # noqa: F401
         elif command == "study":
             from ..tools.study import command as study  # noqa: F401
         elif command == "export":

@@ -1,4 +1,4 @@
-"""The tools around the tracker: `ar-anchor markers`, `ar-anchor calibrate`, `ar-anchor study`."""
+"""The tools around the tracker: `ar-anchor markers`, `ar-anchor calibrate`, `ar-anchor study`, `ar-anchor map`."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from .options import add_command, int_at_least, positive_float
 
 
 def add_parsers(commands: Any) -> None:
-    """The ``markers``, ``calibrate`` and ``study`` commands' options."""
+    """The ``markers``, ``calibrate``, ``study`` and ``map`` commands' options."""
     markers = add_command(
         commands,
         "markers",
@@ -76,6 +76,34 @@ def add_parsers(commands: Any) -> None:
 
     configure_study(study)
     study.set_defaults(func=cmd_study)
+    add_map_parser(commands)
+
+
+def add_map_parser(commands: Any) -> None:
+    """The ``map`` command's options."""
+    mapper = add_command(
+        commands,
+        "map",
+        "learn a map of markers that sit rigidly together (a sheet, a wall, a room) from videos",
+        "Detect the markers in VIDEO (video files, image folders or globs), place them from the reference "
+        "marker (the most seen, or --origin) robustly to the planar flip, and bundle-adjust every frame's "
+        "camera pose and every marker's pose. Writes --out (the ArUco marker map YAML, or our layout TOML "
+        "when it ends in .toml; the other format beside it), <stem>_report.md and <stem>.rrd; the map is "
+        'then a [[boards]] kind = "custom" board of the tracker config.',
+    )
+    mapper.add_argument("sources", nargs="+", metavar="VIDEO", help="video file, image folder or quoted glob")
+    mapper.add_argument("--camera", type=Path, required=True, help="camera YAML of the camera that filmed VIDEO")
+    mapper.add_argument("--dictionary", required=True, help="cv2.aruco dictionary of the markers, e.g. DICT_4X4_50")
+    mapper.add_argument(
+        "--marker-length", type=positive_float, required=True, help="side of each marker's black square, metres"
+    )
+    mapper.add_argument("--out", type=Path, required=True, help="layout file to write: layout.yml or layout.toml")
+    mapper.add_argument("--origin", type=int_at_least(0), default=None, help="marker id of the map frame")
+    mapper.add_argument("--step", type=int_at_least(1), default=1, help="search one frame in N (default 1: all)")
+    mapper.add_argument("--max-frames", type=int_at_least(1), default=None, help="search at most N frames in all")
+    mapper.add_argument("--rrd", type=Path, default=None, help="rerun recording of the map (default: beside --out)")
+    mapper.add_argument("--spawn", action="store_true", help="also show the map in a rerun viewer it starts")
+    mapper.set_defaults(func=cmd_map)
 
 
 def cmd_study(args: argparse.Namespace) -> int:
@@ -102,3 +130,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from ..tools.calibrate import run_calibrate
 
     return run_calibrate(args)
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    """``ar-anchor map``: learn a marker map from videos; the exit code."""
+    from ..tools.map import run_map
+
+    return run_map(args)
