@@ -36,10 +36,12 @@ from .report import FLIP_DEG, fmt, load_average, machine_info, machine_lines, re
 from .stability.scenarios import Scenario, handheld_scenarios
 
 __all__ = [
-    "JITTER_RATIO",
     "FAR_SCENE",
+    "JITTER_RATIO",
     "groups_markdown",
     "run_groups_benchmark",
+    "run_scene",
+    "scene_failures",
     "score_member",
     "write_groups_report",
 ]
@@ -77,7 +79,9 @@ def score_member(output: list[Pose | None], truth: list[Pose | None], state: lis
     }
 
 
-def _run_scene(scenario: Scenario, config: TrackerConfig, camera: CameraModel) -> dict[str, Any]:
+def run_scene(scenario: Scenario, config: TrackerConfig, camera: CameraModel) -> dict[str, Any]:
+    """One scene rendered once, every frame tracked without and with learned groups; each member scored from
+    the frame it joined a group (:func:`score_member`)."""
     camera = scenario.camera_model(camera)
     lone_config = scenario.tracker_config(config)
     group_config = dataclasses.replace(lone_config, groups=dataclasses.replace(lone_config.groups, learn=True))
@@ -119,7 +123,7 @@ def _run_scene(scenario: Scenario, config: TrackerConfig, camera: CameraModel) -
     }
 
 
-def _checks(scene: dict[str, Any]) -> list[str]:
+def scene_failures(scene: dict[str, Any]) -> list[str]:
     """The acceptance failures of one scene (empty: it passes)."""
     failures = []
     joined = {name: m for name, m in scene["members"].items() if m.get("joined") is not None}
@@ -158,8 +162,8 @@ def run_groups_benchmark(
     for k, scenario in enumerate(chosen, start=1):
         if progress is not None:
             progress(k - 1, len(chosen), scenario.name)
-        scenes.append(_run_scene(scenario, config, camera))
-    failures = [f for scene in scenes for f in _checks(scene)]
+        scenes.append(run_scene(scenario, config, camera))
+    failures = [f for scene in scenes for f in scene_failures(scene)]
     meta["load_average_end"] = load_average()
     return {"scenes": scenes, "failures": failures, "passed": not failures, "machine": meta, "quick": quick}
 

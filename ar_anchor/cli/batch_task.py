@@ -111,7 +111,8 @@ def fill_row(row: dict[str, Any], out_dir: Path, *, rigid_sheet: bool) -> None:
         row["rotation_error_p95_deg"] = max((v for v in p95 if v is not None), default=None)
         scored = sum(int(e.get("frames_scored") or 0) for e in targets.values())
         wrong = sum(int(e.get("wrong_frames") or 0) for e in targets.values())
-        row["wrong_frame_rate"] = _fraction(wrong, scored) if any("wrong_frames" in e for e in targets.values()) else None
+        counted = any("wrong_frames" in e for e in targets.values())
+        row["wrong_frame_rate"] = _fraction(wrong, scored) if counted else None
     if rigid_sheet and (out_dir / "poses.csv").is_file():
         from ..bench.real.scoring import read_poses_csv, score_rigid_sheet
 

@@ -269,7 +269,7 @@ class FilterConfig:
 @dataclass(frozen=True)
 class GroupsConfig:
     """Rigid groups learned while tracking (see :mod:`ar_anchor.track.groups`): lone markers whose relative
-    pose holds over many frames and viewpoints are solved jointly, like a board. Opt-in (``learn``)."""
+    pose holds over many frames (and, out of one plane, viewpoints) are solved jointly, like a board. Opt-in."""
 
     learn: bool = key(
         False,
@@ -277,11 +277,6 @@ class GroupsConfig:
         "two objects that only stand still together look rigid too: a member that moves leaves",
     )
     min_frames: int = key(45, "frames a pair's relative pose must hold before the two join", in_range(5, 1_000_000))
-    min_viewpoint_deg: float = key(
-        10.0,
-        "... seen from viewpoints this far apart: the camera's tilt from the markers' normal, degrees",
-        in_range(0.0, 180.0),
-    )
     agreement: float = key(
         0.8, "... in at least this share of the frames that saw both since that pose first appeared", in_range(0.5, 1.0)
     )

@@ -14,10 +14,11 @@ With ``[groups] learn = true`` (``--learn-groups``) the tracker learns such grou
    When no mode fits, the frame's candidates start new ones. Each marker is paired with its
    :data:`_NEIGHBOURS` nearest in the image (the cost stays linear in the markers seen).
 2. **Rigid** when a mode has held ``min_frames`` frames, in at least ``agreement`` of the frames that saw
-   both since it first appeared, from viewpoints at least ``min_viewpoint_deg`` apart (the camera's tilt
-   away from the marker's normal, the part of the viewpoint the planar flip leaves, :func:`_viewpoint`;
-   10th to 90th percentile: a still camera's noise is no viewpoint). Several viewpoints are what tells
-   the true relative rotation from the flipped ones, which move with the viewpoint. Two objects
+   both since it first appeared, and its frames' candidates agree on one relative rotation
+   (:meth:`_Mode._consensus`: a vote, decided only when no other rotation comes near its support). That
+   vote is where viewpoints count: the flipped candidates move with the viewpoint and the true one stays,
+   so markers in different planes seen from one viewpoint only keep two rotations level and never join;
+   markers in one plane have the flip-free planar candidate, which needs no second viewpoint. Two objects
    moving independently keep changing their relative pose, so no mode of theirs lasts. Two objects that
    only stand still together look exactly like one rigid object (nothing in the images tells them apart
    while nothing moves): they are grouped, the event says the evidence is a constant pose across
@@ -30,8 +31,9 @@ With ``[groups] learn = true`` (``--learn-groups``) the tracker learns such grou
    ``board:group-N``, solved like a board (:class:`~.pose.BoardSolver`: RANSAC over its members'
    corners, then LM on the inliers) and passed through the same flip filter. Its layout is refined from
    the frames it is solved in: each member's measured pose in the group's frame, averaged.
-4. **Members** (:func:`members_from_groups`): once its layout has been refined at least once (from
-   frames where three members or more fixed the group's pose), a member measured this frame and used
+4. **Members** (:func:`members_from_groups`): once its layout has settled (refined from frames where the
+   group is ``tracked`` and three members or more fix its pose, until a refinement moves no corner more
+   than :data:`_SETTLED_M`), a member measured this frame and used
    by its group's ``tracked`` joint pose outputs the group's pose composed with its layout (state ``tracked``);
    otherwise its own lone track's output stands (its lone track keeps running, so a member that leaves
    goes on as before). A member the joint pose rejects ``leave_frames`` measured frames in a row leaves
@@ -71,24 +73,26 @@ _MAX_MODES = 6  # relative poses a pair keeps in mind at once
 _PLANAR_SHARE = 0.02  # out-of-plane spread (RMS) below this share of the layout's extent: a planar group
 _PLANAR_TILT_DEG = 10.0  # ... and no marker's normal farther than this from the plane's
 _NEW_MODE_DEG, _NEW_MODE_M = 2.0, 0.003  # a candidate this near an existing mode starts no new one
-_TESTED_MODES = 2  # the modes (most supported first) a frame is fitted against
+_TESTED_MODES = 2  # a frame is fitted against this many of the most supported modes and of the youngest
 _MODE_FRAMES = 150  # frames of candidates a mode keeps for its consensus
-_VOTE_DEG = 4.0  # candidates of two frames this near vote for the same relative rotation
+_VOTE_DEG = 6.0  # candidates of two frames this near vote for the same relative rotation
 _VOTE_SHARE = 0.8  # the winner must have a candidate in this share of the frames ...
-_VOTE_RIVAL = 0.6  # ... and no rotation farther than twice _VOTE_DEG from it more than this share of its votes
+_VOTE_RIVAL = 0.6  # ... and no rotation farther than 3 _VOTE_DEG from it more than this share of its votes
 _PLANAR_FIT = 0.1  # a square fitted to the second marker in the first's plane within this share of its side
+_MEMBER_SLACK_PX = 0.3  # a member takes its group's pose only if that fits its corners within this of its own
+_SETTLED_M = 0.0003  # a refinement that moves no corner more than this: the layout has settled
 _REFINE_EVERY = 15  # frames between layout refinements
 _REFINE_MIN_INLIERS = 3  # a member's pose in the group frame is sampled only when others fix the group
 
 
-_Fits = Callable[["_Mode"], "tuple[int, np.ndarray] | None"]
+_Fits = Callable[["_Mode"], bool]
 
 
 class _Mode:
     """One recurring relative pose of a pair: the candidates of the frames that fit it, their consensus
-    (:meth:`_consensus`), its support and the spread of the viewpoints it was seen from."""
+    (:meth:`_consensus`) and its support."""
 
-    __slots__ = ("born", "count", "decided", "directions", "frames", "rotation", "spread_deg", "translation")
+    __slots__ = ("born", "count", "decided", "frames", "rotation", "translation")
 
     def __init__(self, rotation: np.ndarray, translation: np.ndarray, born: int) -> None:
         self.frames: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=_MODE_FRAMES)
@@ -96,24 +100,14 @@ class _Mode:
         self.rotation, self.translation = rotation, translation
         self.count, self.born = 1, born
         self.decided = False  # the frames' candidates agree on one relative rotation (see _consensus)
-        self.directions: deque[float] = deque(maxlen=_MODE_FRAMES)  # viewpoints: tilts (see _viewpoint)
-        self.spread_deg = 0.0  # how far apart: 10th to 90th percentile of the tilts (a still camera's noise is none)
 
-    def add(
-        self, rotations: np.ndarray, translations: np.ndarray, direction: np.ndarray | None, planar: np.ndarray
-    ) -> None:
+    def add(self, rotations: np.ndarray, translations: np.ndarray, planar: np.ndarray) -> None:
         """A frame that fits: its candidates (the first marker's better-fitting solution with each of the
-        second's, and the planar one when there is one: ``planar`` marks it), and the camera's direction in
-        the first marker's frame at the joint fit."""
+        second's, and the planar one when there is one: ``planar`` marks it)."""
         self.frames.append((rotations, translations, planar))
         self.count += 1
         if self.count <= 10 or self.count % 5 == 0 or not self.decided:
             self._consensus()
-        if direction is not None:
-            self.directions.append(_viewpoint(direction))
-            if len(self.directions) >= 5 and len(self.directions) % 5 == 0:
-                low, high = np.percentile(np.array(self.directions), [10, 90])
-                self.spread_deg = max(self.spread_deg, float(high - low))
 
     def _consensus(self) -> None:
         """The relative rotation most frames have a candidate near (within :data:`_VOTE_DEG`: the flipped
@@ -129,7 +123,7 @@ class _Mode:
         one_hot[np.arange(len(rotations)), frame_of] = True
         support = ((near.astype(np.int32) @ one_hot) > 0).sum(axis=1)
         best = int(np.argmax(support))
-        rival = support[cosines[best] < math.cos(math.radians(2 * _VOTE_DEG))]  # rotations clearly elsewhere
+        rival = support[cosines[best] < math.cos(math.radians(3 * _VOTE_DEG))]  # rotations clearly elsewhere
         self.decided = support[best] >= _VOTE_SHARE * len(self.frames) and (
             len(rival) == 0 or rival.max() <= _VOTE_RIVAL * support[best]
         )
@@ -154,28 +148,22 @@ class _Pair:
     seen: int = 0
     modes: list[_Mode] = field(default_factory=list)
 
-    def observe(self, rotations: np.ndarray, translations: np.ndarray, first_of: np.ndarray, fits: _Fits) -> None:
-        """One frame's candidates (K, 3, 3), (K, 3), which of the first marker's solutions each is made of
-        (K,), and ``fits(mode)``: (the first marker's solution that fits better, the camera's direction at
-        that fit) if this frame's corners fit the mode, else None."""
+    def observe(self, rotations: np.ndarray, translations: np.ndarray, planar: np.ndarray, fits: _Fits) -> None:
+        """One frame's candidates (K, 3, 3), (K, 3), which is the planar one (``planar``, (K,) bool), and
+        ``fits(mode)``: do this frame's corners fit the mode?"""
         self.seen += 1
-        for mode in sorted(self.modes, key=lambda m: -m.count)[:_TESTED_MODES]:
-            fit = fits(mode)
-            if fit is not None:
-                solution, direction = fit
-                mine = (first_of == solution) | (first_of < 0)
-                mode.add(rotations[mine], translations[mine], direction, planar=first_of[mine] < 0)
+        supported = sorted(self.modes, key=lambda m: -m.count)[:_TESTED_MODES]
+        young = [m for m in sorted(self.modes, key=lambda m: -m.born) if m not in supported][:_TESTED_MODES]
+        for mode in supported + young:
+            if fits(mode):
+                mode.add(rotations, translations, planar)
                 return
         for k in range(len(rotations)):  # nothing fits: each candidate may be the start of the true pose
             if any(_near(mode, rotations[k], translations[k]) for mode in self.modes):
                 continue
             if len(self.modes) >= _MAX_MODES:
                 self.modes.remove(min(self.modes, key=lambda mode: (mode.count, -mode.born)))
-            mode = _Mode(rotations[k].copy(), translations[k].copy(), self.seen)
-            self.modes.append(mode)
-            fit = fits(mode)
-            if fit is not None and fit[1] is not None:
-                mode.directions.append(_viewpoint(fit[1]))
+            self.modes.append(_Mode(rotations[k].copy(), translations[k].copy(), self.seen))
 
     def rigid(self, settings: GroupsConfig) -> _Mode | None:
         """The mode that makes the pair rigid (see the module doc), if any."""
@@ -184,7 +172,7 @@ class _Pair:
         mode = max(self.modes, key=lambda m: m.count)
         share = mode.count / max(self.seen - mode.born + 1, 1)
         enough = mode.count >= settings.min_frames and share >= settings.agreement and mode.decided
-        return mode if enough and mode.spread_deg >= settings.min_viewpoint_deg else None
+        return mode if enough else None
 
 
 def _planar_candidate(first: MarkerPose, second: MarkerPose, camera: CameraModel) -> Pose | None:
@@ -217,11 +205,15 @@ def _planar_candidate(first: MarkerPose, second: MarkerPose, camera: CameraModel
     return Pose.from_matrix(rotation, np.array([centre[0], centre[1], 0.0]))
 
 
-def _viewpoint(direction: np.ndarray) -> float:
-    """How far from the marker's normal the camera looks at it (degrees), from the camera's direction (unit,
-    in the marker's frame). The planar flip mirrors the direction about the line of sight (its azimuth
-    turns, its tilt stays about the same), so the tilt is the part of the viewpoint both solutions agree on."""
-    return math.degrees(math.acos(float(np.clip(direction[2], -1.0, 1.0))))
+def _plausible(solved: MarkerPose, config: FilterConfig) -> tuple:
+    """A marker's solutions that this frame leaves possible: both, unless the frame alone decides its flip
+    (:func:`~.filtering.decisive`): then a flipped candidate would only vote for a wrong relative rotation."""
+    hypotheses = solved.hypotheses
+    if len(hypotheses) < 2:
+        return hypotheses
+    better, worse = hypotheses[0].reproj_px, hypotheses[1].reproj_px
+    sigma = max(config.corner_noise_px, better * math.sqrt(2.0))
+    return hypotheses[:1] if decisive(better, worse, config, sigma) else hypotheses
 
 
 def _near(mode: _Mode, rotation: np.ndarray, translation: np.ndarray) -> bool:
@@ -246,6 +238,7 @@ class LearnedGroup:
     samples: dict[int, list[np.ndarray]] = field(default_factory=dict)  # member -> [rotation sum, t sum, n]
     since_refined: int = 0
     refinements: int = 0  # layout refinements from the group's own joint poses (see GroupLearner._sample)
+    settled: bool = False  # its last refinement moved no corner more than _SETTLED_M (its members may follow it)
 
     def __post_init__(self) -> None:
         self.rebuild()
@@ -268,6 +261,10 @@ class LearnedGroup:
         board = BoardConfig(name=self.name, kind="custom", layout=tuple(corners), dictionary=self.dictionary)
         inlier_px = self.solver.inlier_px if hasattr(self, "solver") else 3.0
         self.solver = BoardSolver(board, inlier_px)
+
+    def corners(self) -> dict[int, np.ndarray]:
+        """Each member's corners (4, 3) in the group's frame."""
+        return {i: pose.apply(marker_corners_in_marker(self.lengths[i])) for i, pose in self.layout.items()}
 
     def describe(self) -> str:
         return ", ".join(str(i) for i in sorted(self.layout))
@@ -347,42 +344,34 @@ class GroupLearner:
         return events
 
     def _observe(self, pair: _Pair, first: MarkerPose, second: MarkerPose, camera: CameraModel) -> None:
-        rotations, translations, first_of = [], [], []
-        for a, mine in enumerate(first.hypotheses):
+        rotations, translations, planar = [], [], []
+        for mine in _plausible(first, self.config.filter):
             ra, ta = mine.pose.rotation, mine.pose.tvec
-            for theirs in second.hypotheses:
+            for theirs in _plausible(second, self.config.filter):
                 rotations.append(ra.T @ theirs.pose.rotation)
                 translations.append(ra.T @ (theirs.pose.tvec - ta))
-                first_of.append(a)
-        planar = _planar_candidate(first, second, camera)
-        if planar is not None:  # (both markers in one plane: a candidate the planar flip has no part in)
-            rotations.append(planar.rotation)
-            translations.append(planar.tvec)
-            first_of.append(-1)
+                planar.append(False)
+        in_plane = _planar_candidate(first, second, camera)
+        if in_plane is not None:  # (both markers in one plane: a candidate the planar flip has no part in)
+            rotations.append(in_plane.rotation)
+            translations.append(in_plane.tvec)
+            planar.append(True)
         image = np.concatenate([first.corners_in_image.reshape(4, 2), second.corners_in_image.reshape(4, 2)])
         square = marker_corners_in_marker(second.length_m)
 
-        def fits(mode: _Mode) -> tuple[int, np.ndarray] | None:
+        def fits(mode: _Mode) -> bool:
             points = np.concatenate([first.points_in_target, square @ mode.rotation.T + mode.translation])
-            tried = sorted(
-                (_joint_fit(points, image, h.pose, camera)[::-1] + (a,) for a, h in enumerate(first.hypotheses)),
-                key=lambda fit: fit[0],
-            )
-            rms, pose, solution = tried[0]
-            if rms > self.settings.agree_px:
-                return None
-            centre = pose.camera_centre()
-            return solution, centre / max(float(np.linalg.norm(centre)), 1e-12)
+            limit = self.settings.agree_px
+            return any(_joint_fit(points, image, h.pose, camera)[1] <= limit for h in first.hypotheses)
 
-        pair.observe(np.stack(rotations), np.stack(translations), np.array(first_of), fits)
+        pair.observe(np.stack(rotations), np.stack(translations), np.array(planar), fits)
 
     def _join(self, first: int, second: int, mode: _Mode, pair: _Pair, events: dict[TargetId, list[str]]) -> None:
         """A rigid pair: a new group, a marker added to one, or two groups merged."""
         first_from_second = mode.pose()
         evidence = (
-            f"relative pose held in {mode.count} of {pair.seen - mode.born + 1} frames seen together, "
-            f"viewpoints {mode.spread_deg:.0f} deg apart (a constant pose across viewpoints: two objects "
-            "standing still together look the same; a member that moves leaves)"
+            f"relative pose held in {mode.count} of {pair.seen - mode.born + 1} frames seen together (all the "
+            "images can say: two objects standing still together look the same; a member that moves leaves)"
         )
         g1, g2 = self.member_of.get(first), self.member_of.get(second)
         if g1 is None and g2 is None:
@@ -409,6 +398,7 @@ class GroupLearner:
                 self.member_of[marker_id] = g1
             del self.groups[g2]
             a.samples.clear()
+            a.settled = False
             a.rebuild()
             events.setdefault(g1, []).append(
                 f"merged {b.name} (markers {b.describe()}) through markers {first} and {second}: {evidence}"
@@ -424,6 +414,7 @@ class GroupLearner:
             group.layout[new] = group.layout[second].compose(first_from_second.inverse())
         group.lengths[new] = self.config.marker_length(new)
         self.member_of[new] = group.target
+        group.settled = False
         group.rebuild()
         events.setdefault(group.target, []).append(f"marker {new} joined: {evidence}")
 
@@ -446,10 +437,11 @@ class GroupLearner:
 
     def layouts(self) -> dict[TargetId, dict[int, Pose]]:
         """The layout (``group_from_marker`` by member) of each group whose members take its pose
-        (:func:`members_from_groups`): those whose layout has been refined from their own joint poses at
-        least once (a layout straight from pair evidence is not yet trusted over the members' own poses;
-        a group never solved from three markers or more never is)."""
-        return {name: dict(group.layout) for name, group in self.groups.items() if group.refinements}
+        (:func:`members_from_groups`): those whose layout has settled, refined from their own joint poses
+        until a refinement moves no corner more than :data:`_SETTLED_M` (a layout straight from pair
+        evidence, or still moving, is not trusted over the members' own poses; a group never solved from
+        three markers or more never is)."""
+        return {name: dict(group.layout) for name, group in self.groups.items() if group.settled}
 
     # ------------------------------------------------------------------ after the filter
     def settle(
@@ -539,6 +531,7 @@ class GroupLearner:
         if group.since_refined < _REFINE_EVERY:
             return
         group.since_refined = 0
+        before = group.corners()
         changed = False
         for marker_id, (rotation_sum, translation_sum, count) in group.samples.items():
             if count >= 5 and marker_id in group.layout:
@@ -547,6 +540,9 @@ class GroupLearner:
         if changed:
             group.refinements += 1
             group.rebuild()
+            after = group.corners()
+            moved = max(float(np.abs(after[i] - before[i]).max()) for i in after if i in before)
+            group.settled = moved <= _SETTLED_M
 
 
 def _on_plane(lone: MarkerPose, camera_from_group: Pose, group_from_anchor: Pose, camera: CameraModel) -> Pose | None:
@@ -608,9 +604,11 @@ def members_from_groups(
     """``targets`` (a frame's :class:`~.tracker.TargetResult` by name) with each member that its group's
     ``tracked`` joint pose used this frame given the group's pose composed with its layout, state
     ``tracked`` (``replace(target, pose, reproj_px)`` makes the new result), when this frame's joint solve
-    decides the group's own planar flip (:func:`~.filtering.decisive`, the board margins): a group far
+    decides the group's own planar flip (:func:`~.filtering.decisive`, the board margins: a group far
     away can be as ambiguous as a marker, and a member is never moved onto a flip its group only holds by
-    the evidence of other frames. Others are unchanged."""
+    the evidence of other frames), and when that pose reprojects the member's own corners within
+    :data:`_MEMBER_SLACK_PX` of the member's own solution (a layout still off by a millimetre moves the
+    member off its corners: its own pose is then better). Others are unchanged."""
     out = dict(targets)
     for name, layout in layouts.items():
         group = targets.get(name)
@@ -622,10 +620,12 @@ def members_from_groups(
             if own is None or not own.measured or marker_id not in layout:
                 continue
             pose = group.pose.compose(layout[marker_id])
-            reproj = math.nan
-            if camera is not None and own.corners_in_image is not None:
-                reproj = reprojection_rms(
-                    pose, marker_corners_in_marker(own.length_m), own.corners_in_image.reshape(-1, 2), camera
-                )
+            if camera is None or own.corners_in_image is None or not own.hypotheses:
+                continue
+            reproj = reprojection_rms(
+                pose, marker_corners_in_marker(own.length_m), own.corners_in_image.reshape(-1, 2), camera
+            )
+            if not reproj <= own.hypotheses[0].reproj_px + _MEMBER_SLACK_PX:
+                continue  # the group's pose does not fit this member's corners as its own does: a layout error
             out[member] = replace(own, pose, reproj)
     return out

@@ -102,15 +102,31 @@ def test_markers_on_one_sheet_join_one_group_whose_layout_is_the_sheets():
     assert group.solver.planar  # a sheet is solved as a planar board (both IPPE solutions kept)
 
 
-def test_markers_seen_from_one_viewpoint_only_do_not_join():
-    # a constant relative pose is not enough: the camera must have seen the pair from several directions
+@pytest.mark.parametrize(
+    ("moving", "distance"),
+    [(False, 0.7), (False, 1.6), (True, 0.7), (True, 1.6)],
+    ids=["still", "still far", "moving", "moving far"],
+)
+def test_markers_in_two_planes_join_only_with_their_true_relative_pose(moving, distance):
+    # markers on two faces of a box (60 degrees apart), seen from one viewpoint or many, near or far (where
+    # each lone marker's flip is a coin toss): the vote over the candidates decides the relative rotation
+    # only when the frames agree on one, so a group that forms has the box's layout, never a flipped one
+    fold = Pose(np.array([0.0, math.radians(60.0), 0.0]), np.array([0.12, 0.0, -0.03]))
+    box = {0: Pose.identity(), 1: Pose(np.zeros(3), np.array([0.0, -0.075, 0.0])), 2: fold}
     rng = np.random.default_rng(2)
-    sheet = _sheet((0, 1, 2))
     learner = GroupLearner(_config())
-    camera = _camera(0)
-    for _ in range(200):
-        _step(learner, _measure({i: camera.compose(p) for i, p in sheet.items()}, rng))
-    assert not learner.groups
+    for frame in range(300):
+        camera = _camera(frame if moving else 0, distance=distance)
+        _step(learner, _measure({i: camera.compose(p) for i, p in box.items()}, rng))
+    if moving and distance < 1.0:
+        assert _groups(learner) == [{0, 1, 2}]  # (the test can fail: near and moving, the box is learned)
+    for group in learner.groups.values():
+        anchor = group.layout[group.anchor]
+        for marker_id, pose in group.layout.items():
+            truth = box[group.anchor].inverse().compose(box[marker_id])
+            learned = anchor.inverse().compose(pose)
+            assert angle_between_deg(learned.rotation, truth.rotation) < 3.0, (marker_id, sorted(group.layout))
+            assert np.linalg.norm(learned.tvec - truth.tvec) < 0.006, (marker_id, sorted(group.layout))
 
 
 def _wobble(frame: int, phase: float) -> Pose:
@@ -183,28 +199,37 @@ def test_wrong_detections_in_single_frames_do_not_move_the_group_or_its_members(
     assert len(errors) > 100 and max(errors) < 3.0  # (the joint pose's noise, no flip)
 
 
-def test_members_take_the_pose_of_a_tracked_group_only():
+def test_members_take_the_pose_of_a_tracked_group_only_where_it_fits_their_corners():
     from ar_anchor.targets import TrackState
     from ar_anchor.track.tracker import TargetResult
 
-    layout = {TargetId.board("group-1"): {0: Pose.identity(), 1: Pose(np.zeros(3), np.array([0.1, 0.0, 0.0]))}}
+    group_name = TargetId.board("group-1")
+    layout = {group_name: {0: Pose.identity(), 1: Pose(np.zeros(3), np.array([0.1, 0.0, 0.0]))}}
     group_pose = Pose(np.array([0.1, 0.2, 0.0]), np.array([0.0, 0.0, 0.5]))
-    own = Pose(np.array([0.5, 0.0, 0.0]), np.array([0.2, 0.0, 0.5]))
+    member_truth = group_pose.compose(layout[group_name][1])
+    own = Pose(np.array([0.5, 0.0, 0.0]), np.array([0.2, 0.0, 0.5]))  # the member's own (worse) output
 
-    def result(name, state, pose, used=()):
+    def result(name, state, pose, used=(), corners=None):
         decided = (PoseHypothesis(pose, 0.1), PoseHypothesis(pose, 5.0))  # this frame alone decides the flip
-        return TargetResult(name, state, pose, pose, 0.1, 1.0, LENGTH, hypotheses=decided, markers_used=used)
+        return TargetResult(name, state, pose, pose, 0.1, 1.0, LENGTH, hypotheses=decided, markers_used=used,
+                            corners_in_image=corners)  # fmt: skip
 
-    for state, expected in ((TrackState.TRACKED, True), (TrackState.AMBIGUOUS, False)):
+    on_the_group = CAMERA.project(member_truth.apply(marker_corners_in_marker(LENGTH)))
+    cases = [
+        (TrackState.TRACKED, on_the_group, True),
+        (TrackState.AMBIGUOUS, on_the_group, False),  # the group's flip not committed
+        (TrackState.TRACKED, on_the_group + np.array([2.0, 0.0]), False),  # the group's pose misses its corners
+    ]
+    for state, corners, expected in cases:
         targets = {
-            TargetId.board("group-1"): result(TargetId.board("group-1"), state, group_pose, (0, 1)),
-            TargetId.marker(1): result(TargetId.marker(1), TrackState.AMBIGUOUS, own),
+            group_name: result(group_name, state, group_pose, (0, 1)),
+            TargetId.marker(1): result(TargetId.marker(1), TrackState.AMBIGUOUS, own, corners=corners),
         }
-        out = members_from_groups(targets, layout, None, as_member, TrackerConfig().filter)
+        out = members_from_groups(targets, layout, CAMERA, as_member, TrackerConfig().filter)
         member = out[TargetId.marker(1)]
         if expected:
-            assert member.state is TrackState.TRACKED
-            np.testing.assert_allclose(member.pose.tvec, group_pose.compose(layout[TargetId.board("group-1")][1]).tvec)
+            assert member.state is TrackState.TRACKED and member.reproj_px < 1e-6
+            np.testing.assert_allclose(member.pose.tvec, member_truth.tvec)
         else:
             assert member is targets[TargetId.marker(1)]
 
