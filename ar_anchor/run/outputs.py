@@ -36,6 +36,7 @@ __all__ = [
     "check_not_a_file",
     "is_disk_full",
     "prepare_out_dir",
+    "prepare_out_file_folder",
     "write_failure",
     "write_json_atomic",
 ]
@@ -56,6 +57,17 @@ def check_not_a_file(out: Path, option: str = "--out") -> None:
     if probe.exists() and not probe.is_dir():
         what = "is" if probe == out else f"is inside {printable(probe)}, which is"
         raise InputError(f"{option}: {printable(out)} {what} a file, not a directory")
+
+
+def prepare_out_file_folder(out: Path, option: str = "--out") -> None:
+    """Create the folder the output file ``out`` goes in and check it is writable (:class:`OutputError`
+    naming ``option`` otherwise). Whether ``out`` itself may be written is the caller's to say."""
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"{option} {printable(out)}: cannot create its folder ({err.strerror})") from None
+    if not os.access(out.parent, os.W_OK):
+        raise OutputError(f"{option} {printable(out)}: folder {printable(out.parent)} is not writable")
 
 
 def prepare_out_dir(out: str | os.PathLike[str], option: str = "--out") -> Path:

@@ -9,7 +9,8 @@ import os
 import sys
 from pathlib import Path
 
-from ...errors import ArAnchorError, InputError, OutputError, SourceError, printable
+from ...errors import ArAnchorError, InputError, SourceError, printable
+from ...run.outputs import prepare_out_file_folder
 from ...run.paths import check_paths, spec_inputs
 from ...sources.open import is_device
 from .gather import calibrate_source
@@ -40,12 +41,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out}: is a directory (give the camera YAML file to write)")
     if out.suffix.lower() == ".rrd":
         raise InputError(f"--out {out}: the camera file must be YAML, e.g. camera.yml")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise OutputError(f"--out {out}: cannot create its folder ({err.strerror})") from None
-    if not os.access(out.parent, os.W_OK):
-        raise OutputError(f"--out {out}: folder {out.parent} is not writable")
+    prepare_out_file_folder(out)
     rrd = Path(args.rrd) if getattr(args, "rrd", None) is not None else out.with_suffix(".rrd")
     if rrd.is_dir():
         raise InputError(f"--rrd {printable(rrd)}: is a directory (give the .rrd file to write)")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 from pathlib import Path
 
@@ -13,6 +12,7 @@ from ...camera import CameraModel
 from ...config import ConfigValueError, implausible_length_hint
 from ...config.dictionaries import dictionary_id
 from ...errors import ConfigError, InputError, OutputError, SourceError, printable
+from ...run.outputs import prepare_out_file_folder
 from ...run.paths import check_paths, spec_inputs
 from .observe import observe_sources
 from .recording import MapRecording
@@ -61,12 +61,7 @@ def map_outputs(out: Path, rrd: Path | None = None) -> MapOutputs:
         option = "--rrd" if path == outputs.rrd and rrd is not None else "--out"
         if path.is_dir():
             raise InputError(f"{option} {printable(path)}: is a directory (the {what} is written there)")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise OutputError(f"--out {printable(out)}: cannot create its folder ({err.strerror})") from None
-    if not os.access(out.parent, os.W_OK):
-        raise OutputError(f"--out {printable(out)}: folder {printable(out.parent)} is not writable")
+    prepare_out_file_folder(out)
     return outputs
 
 
