@@ -98,7 +98,11 @@ def fill_row(row: dict[str, Any], out_dir: Path, *, rigid_sheet: bool) -> None:
     row["detection_rate"] = _fraction(summary.get("frames_with_pose") or 0, frames)
     targets = summary.get("targets") or {}
     counts: dict[str, dict[str, int]] = {}
+    from ..track.groups import GROUP_PREFIX
+
     for name, entry in targets.items():
+        if name.startswith(f"board:{GROUP_PREFIX}"):
+            continue  # a learned group (--learn-groups) lives for part of the run by design: not "lost" before it
         states = {state: int(n) for state, n in (entry.get("states") or {}).items()}
         states["lost"] = max(0, frames - sum(states.values()))
         counts[name] = states

@@ -12,7 +12,8 @@ With ``[groups] learn = true`` (``--learn-groups``) the tracker learns such grou
    marker's solutions, reprojects them within ``[groups] agree_px`` RMS. A joint fit, not a comparison
    of the two lone poses: a lone marker's rotation is often degrees off, the pair's corners are not.
    When no mode fits, the frame's candidates start new ones. Each marker is paired with its
-   :data:`_NEIGHBOURS` nearest in the image (the cost stays linear in the markers seen).
+   :data:`_NEIGHBOURS` nearest in the image (the cost stays linear in the markers seen). Markers of a
+   configured board are solved with it and never learned.
 2. **Rigid** when a mode has held ``min_frames`` frames, in at least ``agreement`` of the frames that saw
    both since it first appeared, and its frames' candidates agree on one relative rotation
    (:meth:`_Mode._consensus`: a vote, decided only when no other rotation comes near its support). That
@@ -70,8 +71,8 @@ log = logging.getLogger(__name__)
 GROUP_PREFIX = "group-"
 _NEIGHBOURS = 4  # each marker is paired with this many of its nearest neighbours in the image
 _MAX_MODES = 6  # relative poses a pair keeps in mind at once
-_PLANAR_SHARE = 0.02  # out-of-plane spread (RMS) below this share of the layout's extent: a planar group
-_PLANAR_TILT_DEG = 10.0  # ... and no marker's normal farther than this from the plane's
+_PLANAR_SHARE = 0.005  # out-of-plane spread (RMS) below this share of the layout's extent: a planar group
+_PLANAR_TILT_DEG = 3.0  # ... and no marker's normal farther than this from the plane's (a curled sheet is not flat)
 _NEW_MODE_DEG, _NEW_MODE_M = 2.0, 0.003  # a candidate this near an existing mode starts no new one
 _TESTED_MODES = 2  # a frame is fitted against this many of the most supported modes and of the youngest
 _MODE_FRAMES = 150  # frames of candidates a mode keeps for its consensus
@@ -323,7 +324,11 @@ class GroupLearner:
         """Take this frame's lone-marker solutions as evidence; form, grow and merge groups. Returns the
         events, by the target they concern."""
         self._camera = camera
-        lone = {name.marker_id: solved for name, solved in measured.items() if isinstance(solved, MarkerPose)}
+        lone = {  # (a configured board's markers are solved with their board already)
+            name.marker_id: solved
+            for name, solved in measured.items()
+            if isinstance(solved, MarkerPose) and self.config.board_of(name.marker_id) is None
+        }
         if len(lone) < 2:
             return {}
         ids = sorted(lone)

@@ -217,9 +217,12 @@ def offline_results(frames: FrameStore[FrameResult], plan: OfflinePlan) -> Itera
     for position in range(len(plan)):
         causal = frames[position]
         decided = plan.decided[position]
-        if decided is None:  # a repeated frame: the last answer again
+        if decided is None:  # a repeated frame: the last answer again (its events happened once, then)
             base = previous if previous is not None else causal
-            previous = dataclasses.replace(base, index=causal.index, timestamp_ns=causal.timestamp_ns, repeated=True)
+            targets = {name: dataclasses.replace(t, events=()) for name, t in base.targets.items()}
+            previous = dataclasses.replace(
+                base, index=causal.index, timestamp_ns=causal.timestamp_ns, repeated=True, targets=targets
+            )
             yield previous
             continue
         targets: dict[TargetId, TargetResult] = {}

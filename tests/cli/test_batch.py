@@ -307,6 +307,7 @@ def test_a_row_holds_the_summary_figures_and_with_rigid_sheet_the_pair_flips(tmp
                 "wrong_frames": 1,
                 "frames_scored": 16,
             },
+            "board:group-1": {"states": {"tracked": 2}},  # a learned group, for 2 frames: not counted lost
             "marker:1": {
                 "states": states,
                 "rotation_error_deg": {"median": 0.5, "p95": 3.0},

@@ -241,3 +241,17 @@ def test_groups_config_reads_and_rejects_bad_values():
     with pytest.raises(Exception, match=r"\[groups\] agreement"):
         parse_config({"groups": {"agreement": 0.2}})
     assert TrackerConfig().with_overrides(learn_groups=True).groups.learn
+
+
+def test_markers_of_a_configured_board_are_never_learned_again():
+    from ar_anchor.config import BoardConfig
+
+    board = BoardConfig(name="desk", cols=2, rows=2, marker_length_m=LENGTH, separation_m=0.025, first_id=0)
+    config = dataclasses.replace(_config(), boards=(board,))
+    rng = np.random.default_rng(6)
+    sheet = _sheet((0, 1, 2, 3, 7))
+    learner = GroupLearner(config)
+    for frame in range(120):
+        camera = _camera(frame)
+        _step(learner, _measure({i: camera.compose(p) for i, p in sheet.items()}, rng))
+    assert not learner.groups and not learner.pairs  # (marker 7, the only lone one, has no partner)

@@ -208,3 +208,18 @@ def test_the_spooled_passes_give_what_smooth_gives_in_memory(tmp_path):
             assert a.targets[name].state == b.targets[name].state
             assert np.allclose(a.targets[name].pose.rvec, b.targets[name].pose.rvec, atol=1e-12)
     assert list(tmp_path.iterdir()) == []  # the spool leaves nothing behind
+
+
+def test_a_repeated_frame_repeats_the_answer_not_its_events():
+    from ar_anchor.track.filtering import TrackEvent
+
+    results, _ = sheet_orbit()
+    results = list(results)
+    marker = TargetId.marker(0)
+    event = TrackEvent("group", "something happened")
+    with_event = dataclasses.replace(results[20].targets[marker], events=(event,))
+    results[20] = dataclasses.replace(results[20], targets={**results[20].targets, marker: with_event})
+    results[21] = dataclasses.replace(results[20], index=21, timestamp_ns=results[21].timestamp_ns, repeated=True)
+    offline = smooth(results, TrackerConfig())
+    assert offline[21].repeated and marker in offline[21].targets
+    assert offline[21].targets[marker].events == ()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -12,7 +13,6 @@ from ...camera import CameraModel
 from ...config import ConfigValueError, implausible_length_hint
 from ...config.dictionaries import dictionary_id
 from ...errors import ConfigError, InputError, OutputError, SourceError, printable
-from ...run.outputs import prepare_out_file_folder
 from ...run.paths import check_paths, spec_inputs
 from .observe import observe_sources
 from .recording import MapRecording
@@ -24,6 +24,7 @@ __all__ = ["MapOutputs", "map_outputs", "run_map"]
 log = logging.getLogger(__name__)
 
 _YAML_SUFFIXES = (".yml", ".yaml")
+_FEW_FRAMES = 10  # no marker in fewer searched frames than this, with --step or --max-frames: too few searched
 
 
 class MapOutputs:
@@ -55,14 +56,47 @@ class MapOutputs:
 
 
 def map_outputs(out: Path, rrd: Path | None = None) -> MapOutputs:
-    """The outputs of ``--out`` (and ``--rrd``), checked: not directories, their folder writable."""
+    """The outputs of ``--out`` (and ``--rrd``), checked before any work and without creating anything (a
+    failed run leaves no empty folder): not directories, not one another, their folders creatable and
+    writable, and no file but ``--out`` itself overwritten unless an earlier ``ar-anchor map`` wrote it."""
     outputs = MapOutputs(out, rrd)
-    for what, path in outputs.named():
+    named = outputs.named()
+    for what, path in named:
         option = "--rrd" if path == outputs.rrd and rrd is not None else "--out"
         if path.is_dir():
             raise InputError(f"{option} {printable(path)}: is a directory (the {what} is written there)")
-    prepare_out_file_folder(out)
+        _check_folder(path, option)
+    paths = [path.absolute() for _, path in named]
+    if len(set(paths)) < len(paths):
+        raise InputError(f"--rrd {printable(outputs.rrd)}: is one of the layout files --out writes")
+    ours = _written_by_map(outputs.report)
+    for what, path in named:
+        if path != outputs.primary and path.exists() and not ours:
+            raise InputError(
+                f"--out {printable(out)}: would overwrite {printable(path)} (its {what}), which ar-anchor map did "
+                "not write: move that file or give another --out"
+            )
     return outputs
+
+
+def _check_folder(path: Path, option: str) -> None:
+    """Can ``path``'s folder be created and written (its nearest existing ancestor a writable folder)?"""
+    probe = path.parent.absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise InputError(f"{option} {printable(path)}: {printable(probe)} is a file, not a folder")
+    if not os.access(probe, os.W_OK):
+        raise OutputError(f"{option} {printable(path)}: folder {printable(probe)} is not writable")
+
+
+def _written_by_map(report: Path) -> bool:
+    """Did an earlier ``ar-anchor map`` write these outputs (its report is there, with its title)?"""
+    try:
+        with report.open(encoding="utf-8", errors="replace") as handle:
+            return handle.readline().startswith("# ar-anchor map")
+    except OSError:
+        return False
 
 
 def _check_options(args: argparse.Namespace) -> None:
@@ -119,9 +153,14 @@ def run_map(args: argparse.Namespace) -> int:
     if observed.frames_considered == 0:
         raise SourceError(f"{shown}: no frame could be read")
     if not observed.markers_seen:
+        few = observed.frames_considered < _FEW_FRAMES and (args.step > 1 or args.max_frames is not None)
         raise InputError(
             f"no marker of {args.dictionary} found in the {observed.frames_considered} frame(s) searched in {shown}: "
-            "wrong --dictionary? (the printed markers' family, e.g. DICT_4X4_50 or DICT_ARUCO_ORIGINAL)"
+            + (
+                "only that few frames were searched: a lower --step or a higher --max-frames?"
+                if few
+                else "wrong --dictionary? (the printed markers' family, e.g. DICT_4X4_50 or DICT_ARUCO_ORIGINAL)"
+            )
         )
     if not observed.frames:
         seen = ", ".join(str(i) for i in sorted(observed.markers_seen)[:12])
@@ -151,6 +190,13 @@ def run_map(args: argparse.Namespace) -> int:
         layout_name=outputs.primary.name,
         frame_label=lambda name: labels.get(name, name),
     )
+    for folder in {outputs.primary.parent, outputs.rrd.parent}:  # (created only now: a failed run leaves none)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(
+                f"--out {printable(outputs.primary)}: cannot create {printable(folder)} ({err.strerror})"
+            ) from None
     recording = MapRecording(outputs.rrd, spawn=bool(getattr(args, "spawn", False)))
     succeeded = False
     try:

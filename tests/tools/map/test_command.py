@@ -146,3 +146,43 @@ def test_two_inputs_with_step_and_max_frames(tmp_path, capsys):
     centres = {i: np.mean(layout[i], axis=0) for i in layout}
     assert centres[1] == pytest.approx([0.0, 0.0, 0.0], abs=1e-6)
     assert centres[2][0] - centres[1][0] == pytest.approx(0.0625, abs=2e-4)
+
+
+def test_a_file_beside_out_that_map_did_not_write_is_never_overwritten(tmp_path, capsys):
+    # given the user's own tracker config where the map's TOML would go (beside --out layout.yml)
+    camera_file = tmp_path / "camera.yml"
+    CameraModel.from_fov(640, 480, 600.0).to_yaml(camera_file)
+    _sheet_images(tmp_path / "a", 4)
+    mine = tmp_path / "map.toml"
+    mine.write_text("[detector]\ndictionary = 'DICT_4X4_50'\n")
+    args = ["--camera", str(camera_file), "--dictionary", "DICT_4X4_50", "--marker-length", "0.05"]
+    code, _, err = run(capsys, str(tmp_path / "a"), *args, "--out", str(tmp_path / "map.yml"))
+    # then one line says so, nothing is written and the user's file is as it was
+    assert code == 2 and "would overwrite" in err and "map.toml" in err
+    assert mine.read_text() == "[detector]\ndictionary = 'DICT_4X4_50'\n"
+    assert not (tmp_path / "map.yml").exists() and not (tmp_path / "map_report.md").exists()
+    # a map written before is replaced by a new run, and --rrd may not be one of the layouts
+    mine.unlink()
+    assert run(capsys, str(tmp_path / "a"), *args, "--out", str(tmp_path / "map.yml"))[0] == 0
+    assert run(capsys, str(tmp_path / "a"), *args, "--out", str(tmp_path / "map.yml"))[0] == 0
+    code, _, err = run(capsys, str(tmp_path / "a"), *args, "--out", str(tmp_path / "map.yml"),
+                       "--rrd", str(tmp_path / "map.toml"))  # fmt: skip
+    assert code == 2 and "--rrd" in err
+
+
+def test_a_failed_run_leaves_no_folder_behind(tmp_path, capsys, camera_file):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    out = tmp_path / "new" / "deeper" / "layout.yml"
+    code, _, err = run(
+        capsys, str(folder), "--camera", str(camera_file), "--dictionary", "DICT_4X4_50",
+        "--marker-length", "0.05", "--out", str(out),
+    )  # fmt: skip
+    assert code == 2 and not (tmp_path / "new").exists()
+    # and an --out inside a file is bad input (exit 2), not a write failure
+    (tmp_path / "afile").write_text("x")
+    code, _, err = run(
+        capsys, str(folder), "--camera", str(camera_file), "--dictionary", "DICT_4X4_50",
+        "--marker-length", "0.05", "--out", str(tmp_path / "afile" / "layout.yml"),
+    )  # fmt: skip
+    assert code == 2 and "is a file" in err
