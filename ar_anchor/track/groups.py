@@ -233,6 +233,7 @@ class LearnedGroup:
     layout: dict[int, Pose]
     lengths: dict[int, float]
     dictionary: str
+    inlier_px: float = 3.0  # [pose] board_inlier_px: a member farther than this from the joint pose is an outlier
     solver: BoardSolver = field(init=False)
     rejected: dict[int, int] = field(default_factory=dict)  # member -> measured frames in a row rejected
     disagreeing: int = 0  # frames in a row the joint pose agreed with fewer than two seen members
@@ -260,8 +261,7 @@ class LearnedGroup:
             points = pose.apply(marker_corners_in_marker(self.lengths[marker_id]))
             corners.append((marker_id, tuple(tuple(float(v) for v in p) for p in points)))
         board = BoardConfig(name=self.name, kind="custom", layout=tuple(corners), dictionary=self.dictionary)
-        inlier_px = self.solver.inlier_px if hasattr(self, "solver") else 3.0
-        self.solver = BoardSolver(board, inlier_px)
+        self.solver = BoardSolver(board, self.inlier_px)
 
     def corners(self) -> dict[int, np.ndarray]:
         """Each member's corners (4, 3) in the group's frame."""
@@ -386,6 +386,7 @@ class GroupLearner:
                 {first: Pose.identity(), second: first_from_second},
                 {i: self.config.marker_length(i) for i in (first, second)},
                 self.dictionary,
+                self.inlier_px,
             )
             while group.name in self._reserved:
                 group.number = next(self._numbers)
