@@ -441,8 +441,8 @@ class RerunRecorder:
             if name == self.anchor:
                 labels.append((name, np.zeros(3), target.length_m))
                 continue
-            if name not in self._shapes_logged:
-                self._log_shape(name, target, is_anchor=False)
+            if name not in self._shapes_logged or any(e.kind == "group" for e in target.events):
+                self._log_shape(name, target, is_anchor=False)  # (a learned group's members changed: drawn anew)
             world_from_target = world_from_camera.compose(target.pose)
             self.recording.log(
                 self._own(name, f"world/targets/{entity_name(name)}"),
