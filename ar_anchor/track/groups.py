@@ -61,7 +61,7 @@ from ..camera import CameraModel
 from ..config import BoardConfig, FilterConfig, GroupsConfig, TrackerConfig
 from ..geometry import Pose, marker_corners_in_marker, mean_rotation
 from ..targets import TargetId, TrackState
-from .filtering import decisive, margin_scale
+from .filtering import decided_alone
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, reprojection_rms
 
 __all__ = ["GROUP_PREFIX", "GroupLearner", "LearnedGroup", "members_from_groups"]
@@ -208,13 +208,8 @@ def _planar_candidate(first: MarkerPose, second: MarkerPose, camera: CameraModel
 
 def _plausible(solved: MarkerPose, config: FilterConfig) -> tuple:
     """A marker's solutions that this frame leaves possible: both, unless the frame alone decides its flip
-    (:func:`~.filtering.decisive`): then a flipped candidate would only vote for a wrong relative rotation."""
-    hypotheses = solved.hypotheses
-    if len(hypotheses) < 2:
-        return hypotheses
-    better, worse = hypotheses[0].reproj_px, hypotheses[1].reproj_px
-    sigma = max(config.corner_noise_px, better * math.sqrt(2.0))
-    return hypotheses[:1] if decisive(better, worse, config, sigma) else hypotheses
+    (:func:`~.filtering.decided_alone`): then a flipped candidate would only vote for a wrong relative rotation."""
+    return solved.hypotheses[:1] if decided_alone(solved.hypotheses, config) else solved.hypotheses
 
 
 def _near(mode: _Mode, rotation: np.ndarray, translation: np.ndarray) -> bool:
@@ -578,16 +573,6 @@ def _on_plane(lone: MarkerPose, camera_from_group: Pose, group_from_anchor: Pose
     return group_from_anchor.compose(anchor_from_marker)
 
 
-def _decided(group, config: FilterConfig) -> bool:  # noqa: ANN001 - a TargetResult (tracker imports this module)
-    """Does this frame's joint solve of ``group`` alone decide its planar flip?"""
-    hypotheses = group.hypotheses
-    if len(hypotheses) < 2:
-        return len(hypotheses) == 1
-    better, worse = hypotheses[0].reproj_px, hypotheses[1].reproj_px
-    sigma = max(config.corner_noise_px, better * math.sqrt(2.0))
-    return decisive(better, worse, config, sigma, margin_scale(max(group.inliers, 4)))
-
-
 def _joint_fit(points: np.ndarray, image: np.ndarray, start: Pose, camera: CameraModel) -> tuple[Pose, float]:
     """The camera pose refined (LM) from ``start`` on ``points`` (N, 3) and ``image`` (N, 2), and its RMS
     reprojection error (inf when the solver fails)."""
@@ -610,7 +595,7 @@ def members_from_groups(
     """``targets`` (a frame's :class:`~.tracker.TargetResult` by name) with each member that its group's
     ``tracked`` joint pose used this frame given the group's pose composed with its layout, state
     ``tracked`` (``replace(target, pose, reproj_px)`` makes the new result), when this frame's joint solve
-    decides the group's own planar flip (:func:`~.filtering.decisive`, the board margins: a group far
+    decides the group's own planar flip (:func:`~.filtering.decided_alone`, the board margins: a group far
     away can be as ambiguous as a marker, and a member is never moved onto a flip its group only holds by
     the evidence of other frames), and when that pose reprojects the member's own corners within
     :data:`_MEMBER_SLACK_PX` of the member's own solution (a layout still off by a millimetre moves the
@@ -618,7 +603,11 @@ def members_from_groups(
     out = dict(targets)
     for name, layout in layouts.items():
         group = targets.get(name)
-        if group is None or group.state is not TrackState.TRACKED or not _decided(group, config):
+        if (
+            group is None
+            or group.state is not TrackState.TRACKED
+            or not decided_alone(group.hypotheses, config, group.inliers)
+        ):
             continue
         for marker_id in group.markers_used:
             member = TargetId.marker(marker_id)

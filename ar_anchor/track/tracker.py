@@ -31,8 +31,7 @@ from .filtering import (
     TargetTrack,
     TrackEvent,
     TrackUpdate,
-    decisive,
-    margin_scale,
+    decided_alone,
     unit_covariances_of,
 )
 from .groups import GroupLearner, members_from_groups
@@ -479,15 +478,8 @@ class Tracker:
     def _raw_result(self, name: TargetId, solved: MarkerPose | BoardPose, camera: CameraModel) -> TargetResult:
         """``--no-filter``: the lower-error solution as it is; ``tracked`` only when this frame alone
         decides the planar flip (one valid solution, or the other far worse: see
-        :func:`~ar_anchor.track.filtering.decisive`), else ``ambiguous``."""
-        hypotheses = solved.hypotheses
-        sure = len(hypotheses) == 1 or decisive(
-            hypotheses[0].reproj_px,
-            hypotheses[1].reproj_px,
-            self.config.filter,
-            max(self.config.filter.corner_noise_px, hypotheses[0].reproj_px * math.sqrt(2.0)),
-            margin_scale(len(solved.points_in_target)),
-        )
+        :func:`~ar_anchor.track.filtering.decided_alone`), else ``ambiguous``."""
+        sure = decided_alone(solved.hypotheses, self.config.filter, len(solved.points_in_target))
         return self._result(
             name, TrackState.TRACKED if sure else TrackState.AMBIGUOUS, solved.best.pose, solved, camera
         )

@@ -46,7 +46,7 @@ assigns each frame's solutions to them), :mod:`.evidence` (the evidence, the com
 target's best guess) and :mod:`.track` (:class:`TargetTrack`, which puts them together frame by frame).
 """
 
-from .evidence import TrackEvent, decisive, margin_scale
+from .evidence import TrackEvent, decided_alone, decisive, margin_scale
 from .noise import pose_covariance, unit_covariances_of
 from .smoothing import KalmanBatch, RotationFilter, TranslationFilter, so3_exp, so3_log
 from .track import TargetTrack, TrackUpdate
@@ -58,6 +58,7 @@ __all__ = [
     "TrackEvent",
     "TrackUpdate",
     "TranslationFilter",
+    "decided_alone",
     "decisive",
     "margin_scale",
     "pose_covariance",

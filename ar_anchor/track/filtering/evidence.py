@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import collections
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,17 @@ def decisive(better_px: float, worse_px: float, config: FilterConfig, sigma_px: 
     with its number of points)?"""
     floor = max(config.decisive_px * scale, config.decisive_sigmas * sigma_px)
     return worse_px - better_px >= floor and worse_px >= config.decisive_ratio * better_px
+
+
+def decided_alone(hypotheses: Sequence[PoseHypothesis], config: FilterConfig, points: int = 4) -> bool:
+    r"""Does this frame alone decide the planar flip between its solutions (lower error first): one valid
+    solution, or the other :func:`decisive`\ ly worse, with the frame's own noise floor (the better error
+    times sqrt 2, at least ``corner_noise_px``) and the margins of ``points`` points (:func:`margin_scale`)?"""
+    if len(hypotheses) < 2:
+        return len(hypotheses) == 1
+    better, worse = hypotheses[0].reproj_px, hypotheses[1].reproj_px
+    sigma = max(config.corner_noise_px, better * math.sqrt(2.0))
+    return decisive(better, worse, config, sigma, margin_scale(points))
 
 
 def raw_pick(assigned: list[PoseHypothesis | None]) -> int | None:
