@@ -2,9 +2,11 @@
 hand-held webcam scenes of a 6-marker sheet (:func:`~ar_anchor.bench.stability.scenarios.handheld_scenarios`:
 motion blur, rolling shutter, compression, quick turns, a hand, 5-60 fps, 2-3 m away).
 
-Each scene is rendered once and every frame goes to two trackers: the default one (each marker tracked
-alone) and one with ``[groups] learn = true``, no layout given. Per member of the sheet, from the frame its
-group formed (the learner's first group holding it) to the end, both trackers' outputs against truth:
+Each scene is rendered once and every frame goes to three trackers: the default one (each marker tracked
+alone), one with ``[groups] learn = true``, no layout given, and, for reference, one given the sheet's
+exact layout as a board (each member: the board's pose composed with its place on the sheet: the joint
+solve's own floor in the scene). Per member of the sheet, from the frame its group formed (the learner's
+first group holding it) to the end, the trackers' outputs against truth:
 
 * **wrong frames**: rotation error above :data:`~ar_anchor.bench.report.FLIP_DEG` (a flip), % of the frames
   with an output, and **wrong tracked**: such frames said ``tracked``;
@@ -27,9 +29,10 @@ from typing import Any
 import numpy as np
 
 from ..camera import CameraModel
-from ..config import TrackerConfig
-from ..geometry import Pose, angle_between_deg
+from ..config import BoardConfig, TrackerConfig
+from ..geometry import Pose, angle_between_deg, marker_corners_in_marker
 from ..sources.synthetic import SyntheticSource
+from ..synthetic.scene import marker_sheet
 from ..targets import TargetId
 from ..track.tracker import Tracker
 from .report import FLIP_DEG, fmt, load_average, machine_info, machine_lines, report_head, write_json
@@ -85,7 +88,22 @@ def run_scene(scenario: Scenario, config: TrackerConfig, camera: CameraModel) ->
     camera = scenario.camera_model(camera)
     lone_config = scenario.tracker_config(config)
     group_config = dataclasses.replace(lone_config, groups=dataclasses.replace(lone_config.groups, learn=True))
-    trackers = {"lone": Tracker(lone_config, camera), "groups": Tracker(group_config, camera)}
+    sheet_from_marker = _sheet_layout(scenario)
+    board = BoardConfig(
+        name="sheet",
+        kind="custom",
+        layout=tuple(
+            (i, tuple(tuple(float(v) for v in p) for p in pose.apply(marker_corners_in_marker(scenario.marker_m))))
+            for i, pose in sheet_from_marker.items()
+        ),
+        dictionary=lone_config.detector.dictionary,
+    )
+    layout_config = dataclasses.replace(lone_config, boards=(board,))
+    trackers = {
+        "lone": Tracker(lone_config, camera),
+        "groups": Tracker(group_config, camera),
+        "layout": Tracker(layout_config, camera),
+    }
     names = [TargetId.marker(i) for i in scenario.marker_ids]
     series: dict[str, dict[TargetId, dict[str, list]]] = {
         v: {n: {"output": [], "truth": [], "state": []} for n in names} for v in trackers
@@ -96,8 +114,12 @@ def run_scene(scenario: Scenario, config: TrackerConfig, camera: CameraModel) ->
         truth = frame.truth or {}
         for variant, tracker in trackers.items():
             result = tracker.process(frame)
+            sheet = result.targets.get(TargetId.board("sheet"))
             for name in names:
                 target = result.targets.get(name)
+                if variant == "layout":  # each member from the exact layout's joint pose, where it has one
+                    offset = sheet_from_marker[name.marker_id]
+                    target = None if sheet is None else dataclasses.replace(sheet, pose=sheet.pose.compose(offset))
                 series[variant][name]["output"].append(target.pose if target is not None else None)
                 series[variant][name]["truth"].append(truth.get(name))
                 series[variant][name]["state"].append(str(target.state) if target is not None else "")
@@ -121,6 +143,13 @@ def run_scene(scenario: Scenario, config: TrackerConfig, camera: CameraModel) ->
         "seconds": time.perf_counter() - started,
         "members": members,
     }
+
+
+def _sheet_layout(scenario: Scenario) -> dict[int, Pose]:
+    """The scene's sheet: ``sheet_from_marker`` by id (:func:`~ar_anchor.synthetic.scene.marker_sheet`'s)."""
+    gap = scenario.marker_m / 2 if scenario.sheet_gap_m is None else scenario.sheet_gap_m
+    markers, _ = marker_sheet(scenario.marker_ids, length_m=scenario.marker_m, cols=scenario.sheet_cols, gap_m=gap)
+    return {m.marker_id: m.world_from_target for m in markers}
 
 
 def scene_failures(scene: dict[str, Any]) -> list[str]:
@@ -177,25 +206,28 @@ def groups_markdown(result: dict[str, Any], command: str) -> str:
     lines += [
         "",
         "Per member, from the frame it joined its group to the end of the clip. Jitter: RMS of the "
-        "frame-to-frame change of the output's error (rotation, position).",
+        "frame-to-frame change of the output's error (rotation, position). Exact layout: for reference, "
+        "the sheet's true layout configured as a board, each member the board's pose composed with it "
+        "(what a written layout gives: the joint solve's own floor in the scene).",
         "",
     ]
     lines += [
         "| scene | marker | joined at frame | wrong % lone / groups | wrong tracked (groups) | "
-        "jitter deg lone / groups | jitter mm lone / groups |",
-        "|---|---|---|---|---|---|---|",
+        "jitter deg lone / groups | jitter mm lone / groups | jitter deg / mm, exact layout |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for scene in result["scenes"]:
         for name, member in scene["members"].items():
             if member.get("joined") is None:
-                lines.append(f"| {scene['scene']} | {name} | never | - | - | - | - |")
+                lines.append(f"| {scene['scene']} | {name} | never | - | - | - | - | - |")
                 continue
-            lone, grouped = member["lone"], member["groups"]
+            lone, grouped, exact = member["lone"], member["groups"], member.get("layout", {})
             lines.append(
                 f"| {scene['scene']} | {name} | {member['joined']} | {fmt(lone.get('wrong_pct'))} / "
                 f"{fmt(grouped.get('wrong_pct'))} | {grouped.get('wrong_tracked', '-')} | "
                 f"{fmt(lone.get('jitter_deg'), 3)} / {fmt(grouped.get('jitter_deg'), 3)} | "
-                f"{fmt(lone.get('jitter_mm'), 3)} / {fmt(grouped.get('jitter_mm'), 3)} |"
+                f"{fmt(lone.get('jitter_mm'), 3)} / {fmt(grouped.get('jitter_mm'), 3)} | "
+                f"{fmt(exact.get('jitter_deg'), 3)} / {fmt(exact.get('jitter_mm'), 3)} |"
             )
     lines += ["", f"**Acceptance: {'PASS' if result['passed'] else 'FAIL'}**"]
     lines += [f"- {failure}" for failure in result["failures"]]

@@ -32,11 +32,13 @@ With ``[groups] learn = true`` (``--learn-groups``) the tracker learns such grou
    ``board:group-N``, solved like a board (:class:`~.pose.BoardSolver`: RANSAC over its members'
    corners, then LM on the inliers) and passed through the same flip filter. Its layout is refined from
    the frames it is solved in: each member's measured pose in the group's frame, averaged.
-4. **Members** (:func:`members_from_groups`): once its layout has settled (refined from frames where the
-   group is ``tracked`` and three members or more fix its pose, until a refinement moves no corner more
-   than :data:`_SETTLED_M`), a member measured this frame and used
-   by its group's ``tracked`` joint pose outputs the group's pose composed with its layout (state ``tracked``);
-   otherwise its own lone track's output stands (its lone track keeps running, so a member that leaves
+4. **Members** (:func:`members_from_groups`): once its layout has settled (refined every
+   :data:`_REFINE_EVERY` frames from the frames where three members or more fix the group's pose, until
+   a refinement moves no corner more than :data:`_SETTLED_M`; a planar group's from any such frame, a
+   non-planar group's only while it is ``tracked``: see :meth:`GroupLearner._sample`), a member measured
+   this frame and used by its group's joint pose outputs the group's output composed with its layout
+   (``tracked`` when the group or its own track vouches for it, else ``ambiguous``), if that fits its
+   corners; otherwise its own lone track's output stands (its lone track keeps running, so a member that leaves
    goes on as before). A member the joint pose rejects ``leave_frames`` measured frames in a row leaves
    (its pair evidence with the group is forgotten); a group left with one marker, or whose joint pose
    agrees with fewer than two of the members it sees for ``leave_frames`` frames, dissolves.
@@ -59,7 +61,7 @@ import numpy as np
 
 from ..camera import CameraModel
 from ..config import BoardConfig, FilterConfig, GroupsConfig, TrackerConfig
-from ..geometry import Pose, marker_corners_in_marker, mean_rotation
+from ..geometry import Pose, angle_between_deg, marker_corners_in_marker, mean_rotation
 from ..targets import TargetId, TrackState
 from .filtering import decided_alone
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, reprojection_rms
@@ -82,7 +84,7 @@ _VOTE_RIVAL = 0.6  # ... and no rotation farther than 3 _VOTE_DEG from it more t
 _PLANAR_FIT = 0.1  # a square fitted to the second marker in the first's plane within this share of its side
 _MEMBER_SLACK_PX = 0.3  # a member takes its group's pose only if that fits its corners within this of its own
 _SETTLED_M = 0.0003  # a refinement that moves no corner more than this: the layout has settled
-_REFINE_EVERY = 15  # frames between layout refinements
+_REFINE_EVERY = 5  # frames between layout refinements
 _REFINE_MIN_INLIERS = 3  # a member's pose in the group frame is sampled only when others fix the group
 
 
@@ -449,9 +451,9 @@ class GroupLearner:
         self, measured: dict[TargetId, MarkerPose | BoardPose], tracked: set[TargetId] | None = None
     ) -> dict[TargetId, list[str]]:
         """Count each seen member's agreement with its group's joint pose this frame; members rejected
-        ``leave_frames`` times in a row leave, groups that cannot agree dissolve; refine the layouts from
-        the groups the filter says are ``tracked`` (``tracked``; None: every group solved). Returns the
-        events, by the target they concern."""
+        ``leave_frames`` times in a row leave, groups that cannot agree dissolve; refine the layouts
+        (:meth:`_sample`: a non-planar group's only from frames the filter says it is ``tracked`` in,
+        ``tracked``; None: every group solved). Returns the events, by the target they concern."""
         events: dict[TargetId, list[str]] = {}
         for name, group in list(self.groups.items()):
             solved = measured.get(name)
@@ -474,7 +476,8 @@ class GroupLearner:
                 group.rejected[marker_id] = group.rejected.get(marker_id, 0) + 1
                 if group.rejected[marker_id] >= self.settings.leave_frames:
                     self._leave(group, marker_id, events)
-            if name in self.groups and len(used) >= _REFINE_MIN_INLIERS and (tracked is None or name in tracked):
+            vouched = tracked is None or name in tracked or group.solver.planar  # (see _sample)
+            if name in self.groups and len(used) >= _REFINE_MIN_INLIERS and vouched:
                 self._sample(group, solved, measured)
         return events
 
@@ -509,7 +512,10 @@ class GroupLearner:
         """Each inlier member's pose in the group's frame this frame, summed; every :data:`_REFINE_EVERY`
         frames the layout becomes those means (the anchor's frame stays). A planar group's member: its
         corners' rays met with the group's plane (flip-free, and no lone depth in it: a small marker's
-        distance is its least sure part); another's: its solution nearer the group's."""
+        distance is its least sure part). Sampled whether or not the group's flip is decided: the two
+        solutions of an ambiguous planar group reproject its corners alike, so either plane gives the same
+        layout within that frame's noise (a far group would otherwise never settle). Another's: its
+        solution nearer the group's, only from frames where the group is ``tracked``."""
         group_pose = solved.best.pose
         group_from_camera = group_pose.inverse()
         camera = self._camera
@@ -590,24 +596,23 @@ def members_from_groups(
     layouts: dict[TargetId, dict[int, Pose]],
     camera: CameraModel | None,
     replace: Callable,
-    config: FilterConfig,
 ) -> dict:
     """``targets`` (a frame's :class:`~.tracker.TargetResult` by name) with each member that its group's
-    ``tracked`` joint pose used this frame given the group's pose composed with its layout, state
-    ``tracked`` (``replace(target, pose, reproj_px)`` makes the new result), when this frame's joint solve
-    decides the group's own planar flip (:func:`~.filtering.decided_alone`, the board margins: a group far
-    away can be as ambiguous as a marker, and a member is never moved onto a flip its group only holds by
-    the evidence of other frames), and when that pose reprojects the member's own corners within
+    joint pose used this frame given the group's output composed with its layout (``replace(target, pose,
+    reproj_px, state)`` makes the new result), when that pose reprojects the member's own corners within
     :data:`_MEMBER_SLACK_PX` of the member's own solution (a layout still off by a millimetre moves the
-    member off its corners: its own pose is then better). Others are unchanged."""
+    member off its corners: its own pose is then better). ``layouts`` holds settled groups only
+    (:meth:`GroupLearner.layouts`).
+
+    Whether or not the group's filter has decided its planar flip: undecided, its output is a best guess
+    from 24 or more corners, where each member's is one from four (at 2-3 m, a 6-marker sheet's guess is
+    right where its members' flip). The member's state says which: ``tracked`` when its group is, or when
+    the member's own track vouches for the solution the group's pose lies on (nearer its own output than
+    its other solution); ``ambiguous`` otherwise. Others are unchanged."""
     out = dict(targets)
     for name, layout in layouts.items():
         group = targets.get(name)
-        if (
-            group is None
-            or group.state is not TrackState.TRACKED
-            or not decided_alone(group.hypotheses, config, group.inliers)
-        ):
+        if group is None or not group.state.measured:
             continue
         for marker_id in group.markers_used:
             member = TargetId.marker(marker_id)
@@ -622,5 +627,15 @@ def members_from_groups(
             )
             if not reproj <= own.hypotheses[0].reproj_px + _MEMBER_SLACK_PX:
                 continue  # the group's pose does not fit this member's corners as its own does: a layout error
-            out[member] = replace(own, pose, reproj)
+            sure = group.state is TrackState.TRACKED or (own.state is TrackState.TRACKED and _on_own_branch(pose, own))
+            out[member] = replace(own, pose, reproj, TrackState.TRACKED if sure else TrackState.AMBIGUOUS)
     return out
+
+
+def _on_own_branch(pose: Pose, own) -> bool:
+    """Is ``pose`` nearer the member's own output than the member's other solution (the one farther from
+    that output)? With one solution: yes."""
+    if len(own.hypotheses) < 2:
+        return True
+    other = max(own.hypotheses, key=lambda h: angle_between_deg(h.pose.rotation, own.pose.rotation))
+    return angle_between_deg(pose.rotation, own.pose.rotation) < angle_between_deg(pose.rotation, other.pose.rotation)

@@ -232,7 +232,7 @@ def offline_results(frames: FrameStore[FrameResult], plan: OfflinePlan) -> Itera
             targets[name] = target
         ordered = {name: targets[name] for name in TargetId.ordered(targets)}
         if causal.groups:  # learned rigid groups: members of a tracked group take its pose
-            ordered = members_from_groups(ordered, causal.groups, causal.camera, as_member, plan.config)
+            ordered = members_from_groups(ordered, causal.groups, causal.camera, as_member)
         previous = dataclasses.replace(causal, targets=ordered, causal_targets=causal.targets)
         yield previous
 

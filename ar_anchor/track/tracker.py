@@ -434,7 +434,7 @@ class Tracker:
         groups count agreements (members leave, groups dissolve: a dissolved group's track ends); every
         group event goes on its target's result (or is logged only, when that target has none)."""
         assert self.groups is not None
-        targets = members_from_groups(targets, layouts, camera, as_member, self.config.filter)
+        targets = members_from_groups(targets, layouts, camera, as_member)
         tracked = {name for name, target in targets.items() if target.state is TrackState.TRACKED}
         for name, messages in self.groups.settle(measured, tracked if self.config.filter.enabled else None).items():
             events.setdefault(name, []).extend(messages)
@@ -543,9 +543,9 @@ class Tracker:
             self.groups = GroupLearner(self.config)
 
 
-def as_member(target: TargetResult, pose: Pose, reproj_px: float) -> TargetResult:
+def as_member(target: TargetResult, pose: Pose, reproj_px: float, state: TrackState) -> TargetResult:
     """A group member's result with its group's pose (see :func:`~.groups.members_from_groups`)."""
-    return dataclasses.replace(target, pose=pose, state=TrackState.TRACKED, reproj_px=reproj_px)
+    return dataclasses.replace(target, pose=pose, state=state, reproj_px=reproj_px)
 
 
 def _every_4th_pixel(image: np.ndarray) -> np.ndarray:

@@ -199,7 +199,7 @@ def test_wrong_detections_in_single_frames_do_not_move_the_group_or_its_members(
     assert len(errors) > 100 and max(errors) < 3.0  # (the joint pose's noise, no flip)
 
 
-def test_members_take_the_pose_of_a_tracked_group_only_where_it_fits_their_corners():
+def test_members_take_their_groups_pose_where_it_fits_their_corners_and_say_who_vouches_for_it():
     from ar_anchor.targets import TrackState
     from ar_anchor.track.tracker import TargetResult
 
@@ -207,31 +207,37 @@ def test_members_take_the_pose_of_a_tracked_group_only_where_it_fits_their_corne
     layout = {group_name: {0: Pose.identity(), 1: Pose(np.zeros(3), np.array([0.1, 0.0, 0.0]))}}
     group_pose = Pose(np.array([0.1, 0.2, 0.0]), np.array([0.0, 0.0, 0.5]))
     member_truth = group_pose.compose(layout[group_name][1])
-    own = Pose(np.array([0.5, 0.0, 0.0]), np.array([0.2, 0.0, 0.5]))  # the member's own (worse) output
+    near = Pose(member_truth.rvec + np.array([0.02, 0.0, 0.0]), member_truth.tvec)  # the member's own output
+    flipped = Pose(member_truth.rvec + np.array([0.0, 0.5, 0.0]), member_truth.tvec)  # its other solution
 
-    def result(name, state, pose, used=(), corners=None):
-        decided = (PoseHypothesis(pose, 0.1), PoseHypothesis(pose, 5.0))  # this frame alone decides the flip
-        return TargetResult(name, state, pose, pose, 0.1, 1.0, LENGTH, hypotheses=decided, markers_used=used,
+    def result(name, state, pose, used=(), corners=None, solutions=None):
+        solutions = solutions or (PoseHypothesis(pose, 0.1), PoseHypothesis(pose, 5.0))
+        return TargetResult(name, state, pose, pose, 0.1, 1.0, LENGTH, hypotheses=solutions, markers_used=used,
                             corners_in_image=corners)  # fmt: skip
 
     on_the_group = CAMERA.project(member_truth.apply(marker_corners_in_marker(LENGTH)))
-    cases = [
-        (TrackState.TRACKED, on_the_group, True),
-        (TrackState.AMBIGUOUS, on_the_group, False),  # the group's flip not committed
-        (TrackState.TRACKED, on_the_group + np.array([2.0, 0.0]), False),  # the group's pose misses its corners
+    off_the_group = on_the_group + np.array([2.0, 0.0])
+    both = (PoseHypothesis(near, 0.1), PoseHypothesis(flipped, 0.12))
+    cases = [  # group state, member's own state, its own output, its corners -> member's state (None: its own)
+        (TrackState.TRACKED, TrackState.AMBIGUOUS, near, on_the_group, TrackState.TRACKED),
+        (TrackState.AMBIGUOUS, TrackState.AMBIGUOUS, near, on_the_group, TrackState.AMBIGUOUS),  # a best guess
+        (TrackState.AMBIGUOUS, TrackState.TRACKED, near, on_the_group, TrackState.TRACKED),  # its own vouches
+        (TrackState.AMBIGUOUS, TrackState.TRACKED, flipped, on_the_group, TrackState.AMBIGUOUS),  # not for this
+        (TrackState.TRACKED, TrackState.AMBIGUOUS, near, off_the_group, None),  # the group's pose misses them
+        (TrackState.PREDICTED, TrackState.AMBIGUOUS, near, on_the_group, None),  # the group not measured
     ]
-    for state, corners, expected in cases:
+    for group_state, own_state, own_pose, corners, expected in cases:
         targets = {
-            group_name: result(group_name, state, group_pose, (0, 1)),
-            TargetId.marker(1): result(TargetId.marker(1), TrackState.AMBIGUOUS, own, corners=corners),
+            group_name: result(group_name, group_state, group_pose, (0, 1)),
+            TargetId.marker(1): result(TargetId.marker(1), own_state, own_pose, corners=corners, solutions=both),
         }
-        out = members_from_groups(targets, layout, CAMERA, as_member, TrackerConfig().filter)
+        out = members_from_groups(targets, layout, CAMERA, as_member)
         member = out[TargetId.marker(1)]
-        if expected:
-            assert member.state is TrackState.TRACKED and member.reproj_px < 1e-6
-            np.testing.assert_allclose(member.pose.tvec, member_truth.tvec)
-        else:
+        if expected is None:
             assert member is targets[TargetId.marker(1)]
+            continue
+        assert member.state is expected and member.reproj_px < 1e-6
+        np.testing.assert_allclose(member.pose.tvec, member_truth.tvec)
 
 
 def test_groups_config_reads_and_rejects_bad_values():

@@ -22,6 +22,8 @@ def test_members_of_a_learned_group_are_never_worse_and_steadier_than_alone():
     assert len(members) == 6
     steadier = [m for m in members if m["groups"]["jitter_deg"] < 0.8 * m["lone"]["jitter_deg"]]
     assert len(steadier) >= 4, members
+    # the reference: the sheet's exact layout given as a board, each member from the board's pose
+    assert all(m["layout"]["wrong_pct"] == 0.0 and m["layout"]["jitter_deg"] < m["lone"]["jitter_deg"] for m in members)
 
 
 def test_score_member_counts_wrong_frames_and_jitter_from_the_join():
