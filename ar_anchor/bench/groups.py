@@ -87,6 +87,10 @@ def run_scene(scenario: Scenario, config: TrackerConfig, camera: CameraModel) ->
     the frame it joined a group (:func:`score_member`)."""
     camera = scenario.camera_model(camera)
     lone_config = scenario.tracker_config(config)
+    # the camera's rolling-shutter readout, as its user would configure it ([pose] rolling_shutter_s)
+    lone_config = dataclasses.replace(
+        lone_config, pose=dataclasses.replace(lone_config.pose, rolling_shutter_s=scenario.rolling_shutter_s)
+    )
     group_config = dataclasses.replace(lone_config, groups=dataclasses.replace(lone_config.groups, learn=True))
     sheet_from_marker = _sheet_layout(scenario)
     board = BoardConfig(

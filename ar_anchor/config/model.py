@@ -154,6 +154,12 @@ class PoseConfig:
     recover_markers: bool = key(
         True, "boards: look again for missing markers where the board says they are (refineDetectedMarkers)"
     )
+    rolling_shutter_s: float = key(
+        0.0,
+        "the camera's rolling-shutter readout, first row to last, seconds (0: a global shutter, or unknown); "
+        "each marker's corners are then taken back to the frame's first-row time with its image velocity",
+        in_range(0.0, 1.0),
+    )
 
 
 @dataclass(frozen=True)

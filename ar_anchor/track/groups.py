@@ -66,7 +66,7 @@ from ..targets import TargetId, TrackState
 from .filtering import decided_alone
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, reprojection_rms
 
-__all__ = ["GROUP_PREFIX", "GroupLearner", "LearnedGroup", "members_from_groups"]
+__all__ = ["GROUP_PREFIX", "GroupLayout", "GroupLearner", "LearnedGroup", "members_from_groups"]
 
 log = logging.getLogger(__name__)
 
@@ -438,13 +438,18 @@ class GroupLearner:
                 out[name] = solved
         return out
 
-    def layouts(self) -> dict[TargetId, dict[int, Pose]]:
-        """The layout (``group_from_marker`` by member) of each group whose members take its pose
-        (:func:`members_from_groups`): those whose layout has settled, refined from their own joint poses
-        until a refinement moves no corner more than :data:`_SETTLED_M` (a layout straight from pair
-        evidence, or still moving, is not trusted over the members' own poses; a group never solved from
-        three markers or more never is)."""
-        return {name: dict(group.layout) for name, group in self.groups.items() if group.settled}
+    def layouts(self) -> dict[TargetId, GroupLayout]:
+        """The layout of each group whose members may take its pose (:func:`members_from_groups`): a
+        settled one (refined from its own joint poses until a refinement moves no corner more than
+        :data:`_SETTLED_M`), or a planar one (made flat: its remaining errors lie in its plane, where the
+        members' own corners see them), which only members unsure of their own pose follow until it
+        settles. A non-planar layout straight from pair evidence, or still moving, is not trusted over
+        the members' own poses."""
+        return {
+            name: GroupLayout(dict(group.layout), group.settled)
+            for name, group in self.groups.items()
+            if group.settled or group.solver.planar
+        }
 
     # ------------------------------------------------------------------ after the filter
     def settle(
@@ -591,9 +596,18 @@ def _joint_fit(points: np.ndarray, image: np.ndarray, start: Pose, camera: Camer
     return pose, (reprojection_rms(pose, points, image, camera) if pose.is_finite() else math.inf)
 
 
+@dataclass(frozen=True)
+class GroupLayout:
+    """A group's layout as its members may follow it this frame (:meth:`GroupLearner.layouts`):
+    ``group_from_marker`` by member, and whether it has settled."""
+
+    members: dict[int, Pose]
+    settled: bool = True
+
+
 def members_from_groups(
     targets: dict,
-    layouts: dict[TargetId, dict[int, Pose]],
+    layouts: dict[TargetId, GroupLayout],
     camera: CameraModel | None,
     replace: Callable,
 ) -> dict:
@@ -601,11 +615,13 @@ def members_from_groups(
     joint pose used this frame given the group's output composed with its layout (``replace(target, pose,
     reproj_px, state)`` makes the new result), when that pose reprojects the member's own corners within
     :data:`_MEMBER_SLACK_PX` of the member's own solution (a layout still off by a millimetre moves the
-    member off its corners: its own pose is then better). ``layouts`` holds settled groups only
-    (:meth:`GroupLearner.layouts`).
+    member off its corners: its own pose is then better). ``layouts``: :meth:`GroupLearner.layouts`; a
+    member whose own track vouches for its pose (``tracked``) follows only a settled one (on the real
+    chessboard.avi, small, still-unrefined planar groups of a slightly curled sheet made well-tracked
+    members' relative rotations 8-20 % less steady).
 
     Whether or not the group's filter has decided its planar flip: undecided, its output is a best guess
-    from 24 or more corners, where each member's is one from four (at 2-3 m, a 6-marker sheet's guess is
+    from 8 or more corners where each member's is one from four (at 2-3 m, a 6-marker sheet's guess is
     right where its members' flip). The member's state says which: ``tracked`` when its group is, or when
     the member's own track vouches for the solution the group's pose lies on (nearer its own output than
     its other solution); ``ambiguous`` otherwise. Others are unchanged."""
@@ -617,11 +633,13 @@ def members_from_groups(
         for marker_id in group.markers_used:
             member = TargetId.marker(marker_id)
             own = targets.get(member)
-            if own is None or not own.measured or marker_id not in layout:
+            if own is None or not own.measured or marker_id not in layout.members:
                 continue
-            pose = group.pose.compose(layout[marker_id])
             if camera is None or own.corners_in_image is None or not own.hypotheses:
                 continue
+            if not layout.settled and own.state is TrackState.TRACKED:
+                continue  # a member sure of its own pose waits for the layout to settle
+            pose = group.pose.compose(layout.members[marker_id])
             reproj = reprojection_rms(
                 pose, marker_corners_in_marker(own.length_m), own.corners_in_image.reshape(-1, 2), camera
             )

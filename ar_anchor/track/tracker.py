@@ -34,7 +34,7 @@ from .filtering import (
     decided_alone,
     unit_covariances_of,
 )
-from .groups import GroupLearner, members_from_groups
+from .groups import GroupLayout, GroupLearner, members_from_groups
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
@@ -107,8 +107,8 @@ class FrameResult:
     measurements: dict[TargetId, MarkerPose | BoardPose] = field(default_factory=dict)
     # offline replay: what the live (causal) filter said of this frame, for comparison (None otherwise)
     causal_targets: dict[TargetId, TargetResult] | None = None
-    # learned rigid groups (``[groups] learn``): each group's layout this frame, group_from_marker by member
-    groups: dict[TargetId, dict[int, Pose]] = field(default_factory=dict)
+    # learned rigid groups (``[groups] learn``): the layouts members may follow this frame (GroupLearner.layouts)
+    groups: dict[TargetId, GroupLayout] = field(default_factory=dict)
 
 
 class Tracker:
@@ -139,6 +139,7 @@ class Tracker:
         self._detail = math.nan  # this frame's fine-scale contrast (see FrameResult.detail)
         self._previous: FrameResult | None = None
         self._seen: dict[int, tuple[np.ndarray, int]] = {}  # marker id -> (last corners, when)
+        self._shutter_previous: tuple[int, dict[int, np.ndarray]] | None = None  # (see _at_first_row)
         self._frames_since_full = 0
         self._frames_since_thorough = 0  # frames since the last thorough full-frame search (see _search_whole_frame)
         self._last_size: tuple[int, int] | None = None
@@ -361,6 +362,8 @@ class Tracker:
         t1 = time.perf_counter()
         measured: dict[TargetId, MarkerPose | BoardPose] = {}
         failures: list[PoseFailure] = []
+        observed = detections  # (as seen: the frame's result keeps them, for the next search and the drawing)
+        detections = self._at_first_row(detections, frame)
         for marker_id, corners in zip(detections.ids.tolist(), detections.corners):
             if not self.config.tracks_marker(marker_id):
                 continue
@@ -380,7 +383,7 @@ class Tracker:
             elif board is not None:
                 measured[board.target] = board
         events: dict[TargetId, list[str]] = {}
-        layouts: dict[TargetId, dict[int, Pose]] = {}
+        layouts: dict[TargetId, GroupLayout] = {}
         if self.groups is not None:
             events = self.groups.learn(measured, camera)
             for name, solved_group in self.groups.solve(
@@ -404,7 +407,7 @@ class Tracker:
         return FrameResult(
             frame.index,
             frame.timestamp_ns,
-            detections,
+            observed,
             targets,
             tuple(failures),
             latency,
@@ -414,6 +417,37 @@ class Tracker:
             measurements=measured,
             groups=layouts,
         )
+
+    def _at_first_row(self, detections: MarkerDetections, frame: Frame) -> MarkerDetections:
+        """``detections`` with every corner taken back to the frame's first-row time, for a rolling shutter
+        (``[pose] rolling_shutter_s``, the readout time from the first row to the last; 0: unchanged). A
+        corner on row ``y`` was exposed ``y / height * readout`` after the first row, while the camera moved:
+        each marker's corners move back by its image velocity (its corners' mean shift since the last
+        frame processed, over the time between them) times that delay. A marker not seen in that frame,
+        the first frame, or one after a gap of more than ``restart_gap_s`` is left as detected. Without
+        this, a hand-held camera's pose is a mix of moments that varies with its motion: the main jitter
+        of a joint pose far away (docs/groups.md)."""
+        readout = self.config.pose.rolling_shutter_s
+        now = {int(i): c.copy() for i, c in zip(detections.ids.tolist(), detections.corners)}
+        previous, self._shutter_previous = self._shutter_previous, (frame.timestamp_ns, now)
+        if readout <= 0 or previous is None or not now:
+            return detections
+        then_ns, before = previous
+        dt = (frame.timestamp_ns - then_ns) * 1e-9
+        if not 0 < dt <= max(self.config.filter.restart_gap_s, 1e-9):
+            return detections
+        height = frame.image.shape[0]
+        corners = detections.corners.copy()
+        for k, marker_id in enumerate(detections.ids.tolist()):
+            earlier = before.get(int(marker_id))
+            if earlier is None:
+                continue
+            velocity = (corners[k] - earlier).mean(axis=0) / dt  # px/s
+            if not np.all(np.isfinite(velocity)):
+                continue
+            delay = corners[k][:, 1:2] / height * readout  # s after the first row, per corner
+            corners[k] = corners[k] - velocity[None, :] * delay
+        return dataclasses.replace(detections, corners=corners)
 
     def _end_group_tracks(self) -> None:
         """Forget the tracks of learned groups that are gone (merged into another, or dissolved)."""
@@ -426,7 +460,7 @@ class Tracker:
         self,
         targets: dict[TargetId, TargetResult],
         measured: dict[TargetId, MarkerPose | BoardPose],
-        layouts: dict[TargetId, dict[int, Pose]],
+        layouts: dict[TargetId, GroupLayout],
         events: dict[TargetId, list[str]],
         camera: CameraModel,
     ) -> dict[TargetId, TargetResult]:
@@ -537,6 +571,7 @@ class Tracker:
         self._previous = self._fingerprint = None
         self._sharpness = None
         self._last_corners, self._before_corners, self._seen = {}, {}, {}
+        self._shutter_previous = None
         self._frames_since_full = self._frames_since_thorough = 0
         self._last_size = None
         if self.groups is not None:

@@ -17,7 +17,7 @@ from ar_anchor.camera import CameraModel
 from ar_anchor.config import TrackerConfig, parse_config
 from ar_anchor.geometry import Pose, angle_between_deg, look_at, marker_corners_in_marker
 from ar_anchor.targets import TargetId
-from ar_anchor.track.groups import GroupLearner, members_from_groups
+from ar_anchor.track.groups import GroupLayout, GroupLearner, members_from_groups
 from ar_anchor.track.pose import BoardPose, MarkerPose, PoseHypothesis, solve_marker
 from ar_anchor.track.tracker import as_member
 
@@ -204,9 +204,9 @@ def test_members_take_their_groups_pose_where_it_fits_their_corners_and_say_who_
     from ar_anchor.track.tracker import TargetResult
 
     group_name = TargetId.board("group-1")
-    layout = {group_name: {0: Pose.identity(), 1: Pose(np.zeros(3), np.array([0.1, 0.0, 0.0]))}}
+    members = {0: Pose.identity(), 1: Pose(np.zeros(3), np.array([0.1, 0.0, 0.0]))}
     group_pose = Pose(np.array([0.1, 0.2, 0.0]), np.array([0.0, 0.0, 0.5]))
-    member_truth = group_pose.compose(layout[group_name][1])
+    member_truth = group_pose.compose(members[1])
     near = Pose(member_truth.rvec + np.array([0.02, 0.0, 0.0]), member_truth.tvec)  # the member's own output
     flipped = Pose(member_truth.rvec + np.array([0.0, 0.5, 0.0]), member_truth.tvec)  # its other solution
 
@@ -218,15 +218,18 @@ def test_members_take_their_groups_pose_where_it_fits_their_corners_and_say_who_
     on_the_group = CAMERA.project(member_truth.apply(marker_corners_in_marker(LENGTH)))
     off_the_group = on_the_group + np.array([2.0, 0.0])
     both = (PoseHypothesis(near, 0.1), PoseHypothesis(flipped, 0.12))
-    cases = [  # group state, member's own state, its own output, its corners -> member's state (None: its own)
-        (TrackState.TRACKED, TrackState.AMBIGUOUS, near, on_the_group, TrackState.TRACKED),
-        (TrackState.AMBIGUOUS, TrackState.AMBIGUOUS, near, on_the_group, TrackState.AMBIGUOUS),  # a best guess
-        (TrackState.AMBIGUOUS, TrackState.TRACKED, near, on_the_group, TrackState.TRACKED),  # its own vouches
-        (TrackState.AMBIGUOUS, TrackState.TRACKED, flipped, on_the_group, TrackState.AMBIGUOUS),  # not for this
-        (TrackState.TRACKED, TrackState.AMBIGUOUS, near, off_the_group, None),  # the group's pose misses them
-        (TrackState.PREDICTED, TrackState.AMBIGUOUS, near, on_the_group, None),  # the group not measured
+    cases = [  # group state, layout settled, member's state, its output, its corners -> member's state (None: own)
+        (TrackState.TRACKED, True, TrackState.AMBIGUOUS, near, on_the_group, TrackState.TRACKED),
+        (TrackState.AMBIGUOUS, True, TrackState.AMBIGUOUS, near, on_the_group, TrackState.AMBIGUOUS),  # a guess
+        (TrackState.AMBIGUOUS, True, TrackState.TRACKED, near, on_the_group, TrackState.TRACKED),  # own vouches
+        (TrackState.AMBIGUOUS, True, TrackState.TRACKED, flipped, on_the_group, TrackState.AMBIGUOUS),  # not here
+        (TrackState.TRACKED, True, TrackState.AMBIGUOUS, near, off_the_group, None),  # the pose misses its corners
+        (TrackState.PREDICTED, True, TrackState.AMBIGUOUS, near, on_the_group, None),  # the group not measured
+        (TrackState.TRACKED, False, TrackState.AMBIGUOUS, near, on_the_group, TrackState.TRACKED),  # unsure: follows
+        (TrackState.TRACKED, False, TrackState.TRACKED, near, on_the_group, None),  # sure: waits for it to settle
     ]
-    for group_state, own_state, own_pose, corners, expected in cases:
+    for group_state, settled, own_state, own_pose, corners, expected in cases:
+        layout = {group_name: GroupLayout(members, settled)}
         targets = {
             group_name: result(group_name, group_state, group_pose, (0, 1)),
             TargetId.marker(1): result(TargetId.marker(1), own_state, own_pose, corners=corners, solutions=both),
