@@ -30,18 +30,26 @@ With ``[groups] learn = true`` (``--learn-groups``) the tracker learns such grou
    :data:`_PLANAR_SHARE` of its extent, normals within :data:`_PLANAR_TILT_DEG`) is made exactly planar, so the
    group is solved as a planar board (both IPPE solutions kept). Each group is a target of its own,
    ``board:group-N``, solved like a board (:class:`~.pose.BoardSolver`: RANSAC over its members'
-   corners, then LM on the inliers) and passed through the same flip filter. Its layout is refined from
-   the frames it is solved in: each member's measured pose in the group's frame, averaged.
-4. **Members** (:func:`members_from_groups`): once its layout has settled (refined every
-   :data:`_REFINE_EVERY` frames from the frames where three members or more fix the group's pose, until
-   a refinement moves no corner more than :data:`_SETTLED_M`; a planar group's from any such frame, a
-   non-planar group's only while it is ``tracked``: see :meth:`GroupLearner._sample`), a member measured
-   this frame and used by its group's joint pose outputs the group's output composed with its layout
-   (``tracked`` when the group or its own track vouches for it, else ``ambiguous``), if that fits its
-   corners; otherwise its own lone track's output stands (its lone track keeps running, so a member that leaves
-   goes on as before). A member the joint pose rejects ``leave_frames`` measured frames in a row leaves
-   (its pair evidence with the group is forgotten); a group left with one marker, or whose joint pose
-   agrees with fewer than two of the members it sees for ``leave_frames`` frames, dissolves.
+   corners, then LM on the inliers) and passed through the same flip filter. When a group forms or
+   grows, the tracker does not start it from nothing: a planar group's layout is refined at once from the
+   frames kept (:meth:`GroupLearner.remember`, the last ``[filter] evidence_window_s``;
+   :meth:`GroupLearner.refine_from_past`) and its flip filter is replayed over its joint pose in each
+   (:meth:`GroupLearner.past_solves`). Its layout is then refined every :data:`_REFINE_EVERY` frames from
+   the frames where three members or more fix the group's pose (each member's pose in the group's frame,
+   averaged: a planar group's from any such frame, a non-planar group's only while it is ``tracked``; see
+   :meth:`GroupLearner._sample`), until a refinement moves no corner more than :data:`_SETTLED_M`: it has
+   *settled*.
+4. **Members** (:func:`members_from_groups`): a member measured this frame and used by its group's joint
+   pose outputs the group's output composed with its layout (``tracked`` when the group or its own track
+   vouches for it, else ``ambiguous``) if that fits its corners, and if the layout is one to follow
+   (:meth:`GroupLearner.layouts`): a member unsure of its own pose follows a settled or a planar (flat)
+   layout; one whose own track vouches for it only a settled layout whose orientation for it agrees with
+   its own solutions over recent frames (:meth:`LearnedGroup.agrees`: the pair evidence sees a curled
+   sheet as flat). Otherwise its own lone track's output stands (its lone track keeps running, so a
+   member that leaves goes on as before). A member the joint pose rejects ``leave_frames`` measured
+   frames in a row leaves (its pair evidence with the group is forgotten); a group left with one marker,
+   or whose joint pose agrees with fewer than two of the members it sees for ``leave_frames`` frames,
+   dissolves.
 
 Joins, leaves, merges and dissolutions are :class:`~.filtering.TrackEvent` (kind ``group``) on the
 group's and the members' results, so they reach the log and rerun's ``events``.
@@ -53,7 +61,7 @@ import itertools
 import logging
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -85,7 +93,26 @@ _PLANAR_FIT = 0.1  # a square fitted to the second marker in the first's plane w
 _MEMBER_SLACK_PX = 0.3  # a member takes its group's pose only if that fits its corners within this of its own
 _SETTLED_M = 0.0003  # a refinement that moves no corner more than this: the layout has settled
 _REFINE_EVERY = 5  # frames between layout refinements
+_TURN_DECAY = 0.9  # a member's own-vs-layout turn is averaged over about ten frames ...
+_AGREE_TURN_DEG = 1.0  # ... and a member sure of its pose follows a layout only while it is below this
 _REFINE_MIN_INLIERS = 3  # a member's pose in the group frame is sampled only when others fix the group
+
+
+_HISTORY_FRAMES = 120  # at most this many past frames kept for a new group's flip filter (see remember)
+_PAST_STEP = 2  # a new group's layout is refined from every this-many-th frame kept ...
+_REPLAY_FRAMES = 30  # ... and its flip filter replayed over the last this many (a few hundred ms, once)
+
+
+@dataclass(frozen=True)
+class _PastFrame:
+    """One earlier frame's detections, as :meth:`GroupLearner.remember` keeps them."""
+
+    timestamp_ns: int
+    ids: np.ndarray
+    corners: np.ndarray
+    camera: CameraModel
+    max_reproj_px: float
+    blurred: bool
 
 
 _Fits = Callable[["_Mode"], bool]
@@ -237,6 +264,7 @@ class LearnedGroup:
     samples: dict[int, list[np.ndarray]] = field(default_factory=dict)  # member -> [rotation sum, t sum, n]
     since_refined: int = 0
     refinements: int = 0  # layout refinements from the group's own joint poses (see GroupLearner._sample)
+    turn: dict[int, list] = field(default_factory=dict)  # member -> own-vs-layout turn statistics (_compare_turns)
     settled: bool = False  # its last refinement moved no corner more than _SETTLED_M (its members may follow it)
 
     def __post_init__(self) -> None:
@@ -259,6 +287,41 @@ class LearnedGroup:
             corners.append((marker_id, tuple(tuple(float(v) for v in p) for p in points)))
         board = BoardConfig(name=self.name, kind="custom", layout=tuple(corners), dictionary=self.dictionary)
         self.solver = BoardSolver(board, self.inlier_px)
+
+    def take_means(self, sums: dict[int, list]) -> bool:
+        """The layout becomes the members' mean poses in the group's frame (``sums``: member -> [rotation
+        sum, translation sum, count]; those with five samples or more), the anchor's included, then
+        re-expressed so that the anchor stays where the layout had it (the group's frame does not move
+        with its anchor's sampling noise, and the others are not left to absorb the anchor's own error).
+        Returns whether anything changed (the solver is rebuilt then)."""
+        means = {
+            i: Pose.from_matrix(mean_rotation([rotation_sum]), translation_sum / count)
+            for i, (rotation_sum, translation_sum, count) in sums.items()
+            if count >= 5 and i in self.layout
+        }
+        if not means:
+            return False
+        fix = Pose.identity()
+        if self.anchor in means:  # (group_from_marker of the anchor kept as it was)
+            fix = self.layout[self.anchor].compose(means[self.anchor].inverse())
+        for marker_id, pose in means.items():
+            self.layout[marker_id] = fix.compose(pose)
+        for marker_id in set(self.layout) - set(means):
+            self.layout[marker_id] = fix.compose(self.layout[marker_id])
+        self.rebuild()
+        return True
+
+    def agrees(self, marker_id: int) -> bool:
+        """Does the layout's orientation for this member agree with the member's own solutions (recent
+        frames, :meth:`GroupLearner._compare_turns`): their mean turn below :data:`_AGREE_TURN_DEG`, or
+        below three standard errors of that mean (a far, noisy member cannot tell a degree apart)?"""
+        stats = self.turn.get(marker_id)
+        if stats is None or stats[2] < 3.0:
+            return False
+        mean, square, weight = stats
+        spread = max(square - float(mean @ mean), 0.0)
+        standard_error = math.sqrt(spread / weight)
+        return float(np.linalg.norm(mean)) <= max(math.radians(_AGREE_TURN_DEG), 3.0 * standard_error)
 
     def corners(self) -> dict[int, np.ndarray]:
         """Each member's corners (4, 3) in the group's frame."""
@@ -315,12 +378,15 @@ class GroupLearner:
         self._numbers = itertools.count(1)
         self._reserved = {board.name for board in config.boards}
         self._camera: CameraModel | None = None  # this frame's (the layouts' refinement needs it)
+        self._history: deque[_PastFrame] = deque(maxlen=_HISTORY_FRAMES)  # (see remember)
+        self.changed: set[TargetId] = set()  # groups formed or grown by this frame's learn
 
     # ------------------------------------------------------------------ learning
     def learn(self, measured: dict[TargetId, MarkerPose | BoardPose], camera: CameraModel) -> dict[TargetId, list[str]]:
         """Take this frame's lone-marker solutions as evidence; form, grow and merge groups. Returns the
         events, by the target they concern."""
         self._camera = camera
+        self.changed = set()
         lone = {  # (a configured board's markers are solved with their board already)
             name.marker_id: solved
             for name, solved in measured.items()
@@ -389,6 +455,7 @@ class GroupLearner:
                 group.number = next(self._numbers)
                 group.rebuild()
             self.groups[group.target] = group
+            self.changed.add(group.target)
             self.member_of.update({first: group.target, second: group.target})
             events.setdefault(group.target, []).append(f"formed from markers {first} and {second}: {evidence}")
             return
@@ -400,6 +467,8 @@ class GroupLearner:
                 a.lengths[marker_id] = b.lengths[marker_id]
                 self.member_of[marker_id] = g1
             del self.groups[g2]
+            self.changed.discard(g2)
+            self.changed.add(g1)
             a.samples.clear()
             a.settled = False
             a.rebuild()
@@ -417,6 +486,7 @@ class GroupLearner:
             group.layout[new] = group.layout[second].compose(first_from_second.inverse())
         group.lengths[new] = self.config.marker_length(new)
         self.member_of[new] = group.target
+        self.changed.add(group.target)
         group.settled = False
         group.rebuild()
         events.setdefault(group.target, []).append(f"marker {new} joined: {evidence}")
@@ -438,6 +508,62 @@ class GroupLearner:
                 out[name] = solved
         return out
 
+    def remember(
+        self, timestamp_ns: int, ids: np.ndarray, corners: np.ndarray, camera: CameraModel, max_reproj_px: float,
+        blurred: bool,
+    ) -> None:  # fmt: skip
+        """Keep this frame's detections for :meth:`past_solves` (the last ``[filter] evidence_window_s``)."""
+        self._history.append(_PastFrame(timestamp_ns, ids.copy(), corners.copy(), camera, max_reproj_px, blurred))
+        oldest = timestamp_ns - int(self.config.filter.evidence_window_s * 1e9)
+        while self._history and self._history[0].timestamp_ns < oldest:
+            self._history.popleft()
+
+    def refine_from_past(self, name: TargetId, rounds: int = 2) -> int:
+        """A planar group formed or grown this frame: its layout refined at once from the frames kept by
+        :meth:`remember` (``rounds`` times: each member's corners met with the group's plane in every frame
+        the group's joint pose used three members or more, averaged), instead of only from the frames to
+        come; a layout straight from pair evidence is a millimetre off, and at a distance that is enough to
+        tip the flip evidence the wrong way. Returns the frames used (0: not refined)."""
+        group = self.groups[name]
+        if not group.solver.planar:
+            return 0
+        used = 0
+        for _ in range(rounds):
+            sums: dict[int, list] = {}
+            used = 0
+            for past in itertools.islice(self._history, 0, None, _PAST_STEP):
+                solved = group.solver.solve(past.ids, past.corners, past.camera, past.max_reproj_px)
+                if not isinstance(solved, BoardPose) or len(solved.markers_used) < _REFINE_MIN_INLIERS:
+                    continue
+                used += 1
+                seen = {int(i): c for i, c in zip(past.ids.tolist(), past.corners)}
+                for marker_id in solved.markers_used:
+                    if marker_id not in seen:
+                        continue
+                    sample = _on_plane(
+                        seen[marker_id], group.lengths[marker_id], solved.best.pose, group.layout[group.anchor],
+                        past.camera,
+                    )  # fmt: skip
+                    if sample is None:
+                        continue
+                    total = sums.setdefault(marker_id, [np.zeros((3, 3)), np.zeros(3), 0])
+                    total[0] = total[0] + sample.rotation
+                    total[1] = total[1] + sample.tvec
+                    total[2] += 1
+            if not group.take_means(sums):
+                return 0
+        return used
+
+    def past_solves(self, name: TargetId) -> Iterator[tuple[_PastFrame, BoardPose | None]]:
+        """Group ``name``'s joint pose in each frame kept by :meth:`remember` (None where it has none), oldest
+        first: the evidence a group formed or grown this frame (:attr:`changed`) would have had, had it been
+        a board then (the tracker replays its flip filter over them)."""
+        group = self.groups[name]
+        start = max(len(self._history) - _REPLAY_FRAMES, 0)
+        for past in itertools.islice(self._history, start, None):
+            solved = group.solver.solve(past.ids, past.corners, past.camera, past.max_reproj_px)
+            yield past, solved if isinstance(solved, BoardPose) else None
+
     def layouts(self) -> dict[TargetId, GroupLayout]:
         """The layout of each group whose members may take its pose (:func:`members_from_groups`): a
         settled one (refined from its own joint poses until a refinement moves no corner more than
@@ -446,7 +572,7 @@ class GroupLearner:
         settles. A non-planar layout straight from pair evidence, or still moving, is not trusted over
         the members' own poses."""
         return {
-            name: GroupLayout(dict(group.layout), group.settled)
+            name: GroupLayout(dict(group.layout), group.settled, frozenset(i for i in group.turn if group.agrees(i)))
             for name, group in self.groups.items()
             if group.settled or group.solver.planar
         }
@@ -481,10 +607,35 @@ class GroupLearner:
                 group.rejected[marker_id] = group.rejected.get(marker_id, 0) + 1
                 if group.rejected[marker_id] >= self.settings.leave_frames:
                     self._leave(group, marker_id, events)
+            if name in self.groups:
+                self._compare_turns(group, solved, measured)
             vouched = tracked is None or name in tracked or group.solver.planar  # (see _sample)
             if name in self.groups and len(used) >= _REFINE_MIN_INLIERS and vouched:
                 self._sample(group, solved, measured)
         return events
+
+    def _compare_turns(
+        self, group: LearnedGroup, solved: BoardPose, measured: dict[TargetId, MarkerPose | BoardPose]
+    ) -> None:
+        """Per member used by this frame's joint pose: the turn from its own solution nearest the layout's
+        orientation for it to that orientation (a rotation vector in the member's frame), averaged over
+        recent frames (:data:`_TURN_DECAY`). Noise averages out; a layout that bends a sheet differently
+        from the sheet itself (a curl flattened: the pair evidence's planar candidate sees none) leaves a
+        steady turn that a well-measured member's own corners see (see :meth:`layouts`)."""
+        for marker_id in solved.markers_used:
+            lone = measured.get(TargetId.marker(marker_id))
+            if not isinstance(lone, MarkerPose) or marker_id not in group.layout:
+                continue
+            expected = solved.best.pose.compose(group.layout[marker_id]).rotation
+            nearest = max(lone.hypotheses, key=lambda h: float(np.vdot(h.pose.rotation, expected)))
+            turn = Pose.from_matrix(nearest.pose.rotation.T @ expected, np.zeros(3)).rvec
+            stats = group.turn.get(marker_id)  # [mean turn, mean squared turn, weight]
+            if stats is None:
+                group.turn[marker_id] = [turn, float(turn @ turn), 1.0]
+                continue
+            stats[0] = _TURN_DECAY * stats[0] + (1.0 - _TURN_DECAY) * turn
+            stats[1] = _TURN_DECAY * stats[1] + (1.0 - _TURN_DECAY) * float(turn @ turn)
+            stats[2] = _TURN_DECAY * stats[2] + 1.0
 
     def _leave(self, group: LearnedGroup, marker_id: int, events: dict[TargetId, list[str]]) -> None:
         del group.layout[marker_id]
@@ -526,11 +677,11 @@ class GroupLearner:
         camera = self._camera
         for marker_id in solved.markers_used:
             lone = measured.get(TargetId.marker(marker_id))
-            if not isinstance(lone, MarkerPose) or marker_id == group.anchor:
+            if not isinstance(lone, MarkerPose):
                 continue
             sample = None
             if group.solver.planar and camera is not None:
-                sample = _on_plane(lone, group_pose, group.layout[group.anchor], camera)
+                sample = _on_plane(lone.corners_in_image, lone.length_m, group_pose, group.layout[group.anchor], camera)
             if sample is None:
                 expected = group_pose.compose(group.layout[marker_id]).rotation
                 nearest = min(lone.hypotheses, key=lambda h: float(np.vdot(h.pose.rotation, -expected)))
@@ -544,23 +695,20 @@ class GroupLearner:
             return
         group.since_refined = 0
         before = group.corners()
-        changed = False
-        for marker_id, (rotation_sum, translation_sum, count) in group.samples.items():
-            if count >= 5 and marker_id in group.layout:
-                group.layout[marker_id] = Pose.from_matrix(mean_rotation([rotation_sum]), translation_sum / count)
-                changed = True
-        if changed:
+        if group.take_means(group.samples):
             group.refinements += 1
-            group.rebuild()
             after = group.corners()
             moved = max(float(np.abs(after[i] - before[i]).max()) for i in after if i in before)
             group.settled = moved <= _SETTLED_M
 
 
-def _on_plane(lone: MarkerPose, camera_from_group: Pose, group_from_anchor: Pose, camera: CameraModel) -> Pose | None:
-    """``group_from_marker`` of a marker of a planar group from its corners: their rays (undistorted) met
-    with the group's plane (the anchor's x-y plane), and a square of its side fitted there."""
-    pixels = lone.corners_in_image.reshape(4, 1, 2).astype(np.float64)
+def _on_plane(
+    corners: np.ndarray, length_m: float, camera_from_group: Pose, group_from_anchor: Pose, camera: CameraModel
+) -> Pose | None:
+    """``group_from_marker`` of a marker of a planar group from its ``corners`` (in the image) and side:
+    their rays (undistorted) met with the group's plane (the anchor's x-y plane), and a square of its side
+    fitted there."""
+    pixels = np.asarray(corners, dtype=np.float64).reshape(4, 1, 2)
     rays = cv2.undistortPoints(pixels, camera.camera_matrix, camera.dist_or_none).reshape(4, 2)
     rays = np.column_stack([rays, np.ones(4)])
     camera_from_anchor = camera_from_group.compose(group_from_anchor)
@@ -572,7 +720,7 @@ def _on_plane(lone: MarkerPose, camera_from_group: Pose, group_from_anchor: Pose
     if np.any(points[:, 2] <= 0):
         return None
     in_plane = (points - origin) @ camera_from_anchor.rotation[:, :2]  # the anchor's x, y
-    square = marker_corners_in_marker(lone.length_m)[:, :2]
+    square = marker_corners_in_marker(length_m)[:, :2]
     centre = in_plane.mean(axis=0)
     u, _, vt = np.linalg.svd(square.T @ (in_plane - centre))
     turn = (u @ vt).T
@@ -603,6 +751,7 @@ class GroupLayout:
 
     members: dict[int, Pose]
     settled: bool = True
+    agree: frozenset[int] | None = None  # members whose own orientation agrees with it (LearnedGroup.agrees; None: all)
 
 
 def members_from_groups(
@@ -616,9 +765,10 @@ def members_from_groups(
     reproj_px, state)`` makes the new result), when that pose reprojects the member's own corners within
     :data:`_MEMBER_SLACK_PX` of the member's own solution (a layout still off by a millimetre moves the
     member off its corners: its own pose is then better). ``layouts``: :meth:`GroupLearner.layouts`; a
-    member whose own track vouches for its pose (``tracked``) follows only a settled one (on the real
-    chessboard.avi, small, still-unrefined planar groups of a slightly curled sheet made well-tracked
-    members' relative rotations 8-20 % less steady).
+    member whose own track vouches for its pose (``tracked``) follows only a settled one that its
+    orientation agrees with (:attr:`GroupLayout.agree`): on the real chessboard.avi, the pair evidence
+    learns the slightly curled sheet as flat, and following such layouts made well-tracked members'
+    relative rotations up to 30 % less steady.
 
     Whether or not the group's filter has decided its planar flip: undecided, its output is a best guess
     from 8 or more corners where each member's is one from four (at 2-3 m, a 6-marker sheet's guess is
@@ -637,8 +787,10 @@ def members_from_groups(
                 continue
             if camera is None or own.corners_in_image is None or not own.hypotheses:
                 continue
-            if not layout.settled and own.state is TrackState.TRACKED:
-                continue  # a member sure of its own pose waits for the layout to settle
+            if own.state is TrackState.TRACKED and not (
+                layout.settled and (layout.agree is None or marker_id in layout.agree)
+            ):
+                continue  # a member sure of its own pose: only a settled layout its orientation agrees with
             pose = group.pose.compose(layout.members[marker_id])
             reproj = reprojection_rms(
                 pose, marker_corners_in_marker(own.length_m), own.corners_in_image.reshape(-1, 2), camera

@@ -395,6 +395,12 @@ class Tracker:
                     measured[name] = solved_group
             layouts = self.groups.layouts()
             self._end_group_tracks()
+            if self.config.filter.enabled:
+                for name in sorted(self.groups.changed & set(self.groups.groups)):
+                    events.setdefault(name, []).append(self._warm_group_track(name))
+            self.groups.remember(
+                frame.timestamp_ns, detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, blurred
+            )
         t2 = time.perf_counter()
         if self.config.filter.enabled:
             targets = self._filter(measured, frame.timestamp_ns, camera, blurred)
@@ -422,11 +428,13 @@ class Tracker:
         """``detections`` with every corner taken back to the frame's first-row time, for a rolling shutter
         (``[pose] rolling_shutter_s``, the readout time from the first row to the last; 0: unchanged). A
         corner on row ``y`` was exposed ``y / height * readout`` after the first row, while the camera moved:
-        each marker's corners move back by its image velocity (its corners' mean shift since the last
-        frame processed, over the time between them) times that delay. A marker not seen in that frame,
-        the first frame, or one after a gap of more than ``restart_gap_s`` is left as detected. Without
-        this, a hand-held camera's pose is a mix of moments that varies with its motion: the main jitter
-        of a joint pose far away (docs/groups.md)."""
+        each corner moves back by its image velocity (its shift since the last frame processed, over the
+        time between them: per corner, since a turning marker's corners move apart) times that delay. A
+        marker not seen in that frame, one whose corners did not move as one square (:func:`_jumped`: a
+        detection that jumped, whose velocity would be made of the jump), the first frame, or one after a
+        gap of more than ``restart_gap_s`` is left as detected. Without this, a hand-held camera's pose is
+        a mix of moments that varies with its motion: sheared markers, and the main jitter of a joint
+        pose far away (docs/groups.md)."""
         readout = self.config.pose.rolling_shutter_s
         now = {int(i): c.copy() for i, c in zip(detections.ids.tolist(), detections.corners)}
         previous, self._shutter_previous = self._shutter_previous, (frame.timestamp_ns, now)
@@ -442,12 +450,39 @@ class Tracker:
             earlier = before.get(int(marker_id))
             if earlier is None:
                 continue
-            velocity = (corners[k] - earlier).mean(axis=0) / dt  # px/s
-            if not np.all(np.isfinite(velocity)):
-                continue
+            if _jumped(earlier, corners[k]):
+                continue  # not the same square moved: a detection that jumped (this one or the last)
+            velocity = (corners[k] - earlier) / dt  # px/s, per corner (a turning marker's corners move apart)
             delay = corners[k][:, 1:2] / height * readout  # s after the first row, per corner
-            corners[k] = corners[k] - velocity[None, :] * delay
+            corners[k] = corners[k] - velocity * delay
         return dataclasses.replace(detections, corners=corners)
+
+    def _warm_group_track(self, name: TargetId) -> str:
+        """A group formed or grown this frame starts from the frames the learner kept (the last
+        ``[filter] evidence_window_s``), not from nothing: a planar group's layout is first refined from
+        them (:meth:`~.groups.GroupLearner.refine_from_past`), then its flip filter is replayed over its
+        joint pose in each (:meth:`~.groups.GroupLearner.past_solves`). Far away, a layout straight from
+        pair evidence tips the flip evidence the wrong way, and a filter started now shows its first
+        frames' coin-toss pick, where the frames before already hold the evidence. Returns the event's text."""
+        assert self.groups is not None
+        refined = self.groups.refine_from_past(name)
+        track: TargetTrack | None = None
+        frames = 0
+        for past, solved in self.groups.past_solves(name):
+            if track is None and solved is None:
+                continue
+            if track is None:
+                assert solved is not None
+                track = TargetTrack(self.config.filter, solved.points_in_target)
+            track.update(solved, past.timestamp_ns, past.camera, blurred=past.blurred)
+            frames += solved is not None
+        self.tracks.pop(name, None)
+        layout = f"its layout refined from {refined} earlier frames; " if refined else ""
+        if track is None:
+            return f"{layout}its flip filter starts now (no earlier frame of its markers kept)"
+        self.tracks[name] = track
+        decided = "decided" if track.committed is not None else "undecided"
+        return f"{layout}its flip filter replayed over the {frames} earlier frames that solve it (flip {decided})"
 
     def _end_group_tracks(self) -> None:
         """Forget the tracks of learned groups that are gone (merged into another, or dissolved)."""
@@ -654,6 +689,25 @@ def _same_corners(now: MarkerDetections, before: MarkerDetections) -> bool:
     return all(
         int(i) in where and float(np.abs(c - where[int(i)]).max()) < _REPEAT_PX for i, c in zip(now.ids, now.corners)
     )
+
+
+_JUMP_SHARE = 0.05  # corners that moved this share of the marker's side (at least 1 px) otherwise than ...
+
+
+def _jumped(before: np.ndarray, now: np.ndarray) -> bool:
+    """Did a marker's corners (4, 2) move from ``before`` to ``now`` otherwise than one square turned,
+    scaled and shifted in the image (a similarity fitted by least squares), by more than
+    :data:`_JUMP_SHARE` of its side or 1 px? Then one of the two detections jumped (or is not finite)."""
+    z0 = before[:, 0] + 1j * before[:, 1]
+    z1 = now[:, 0] + 1j * now[:, 1]
+    c0, c1 = z0.mean(), z1.mean()
+    spread = float(np.sum(np.abs(z0 - c0) ** 2))
+    if not spread > 0 or not np.all(np.isfinite(z1)):
+        return True
+    a = np.sum((z1 - c1) * np.conj(z0 - c0)) / spread
+    off = float(np.abs(z1 - (a * (z0 - c0) + c1)).max())
+    side = float(np.abs(np.diff(np.append(z1, z1[0]))).mean())
+    return not off <= max(1.0, _JUMP_SHARE * side)
 
 
 def _finite_or_nan(value: float) -> float:

@@ -241,6 +241,57 @@ def test_members_take_their_groups_pose_where_it_fits_their_corners_and_say_who_
             continue
         assert member.state is expected and member.reproj_px < 1e-6
         np.testing.assert_allclose(member.pose.tvec, member_truth.tvec)
+    # a member sure of its own pose follows only a layout its own orientation agrees with (a curl flattened)
+    sure = result(TargetId.marker(1), TrackState.TRACKED, near, corners=on_the_group, solutions=both)
+    group = result(group_name, TrackState.TRACKED, group_pose, (0, 1))
+    for agree, follows in ((frozenset({1}), True), (frozenset({0}), False)):
+        layout = {group_name: GroupLayout(members, True, agree)}
+        out = members_from_groups({group_name: group, TargetId.marker(1): sure}, layout, CAMERA, as_member)
+        assert (out[TargetId.marker(1)] is not sure) is follows
+
+
+def _layout_error_mm(group, sheet) -> float:
+    """RMS distance of a group's member corners from the truth, both in the anchor marker's frame."""
+    anchor = group.layout[group.anchor]
+    errors = []
+    for marker_id, pose in group.layout.items():
+        learned = anchor.inverse().compose(pose).apply(marker_corners_in_marker(LENGTH))
+        truth = sheet[group.anchor].inverse().compose(sheet[marker_id]).apply(marker_corners_in_marker(LENGTH))
+        errors.append(np.sum((learned - truth) ** 2, axis=1))
+    return 1e3 * float(np.sqrt(np.mean(np.concatenate(errors))))
+
+
+def test_a_planar_group_formed_or_grown_is_refined_at_once_from_the_frames_before():
+    # far enough that the pair evidence leaves a layout a fraction of a millimetre off: the frames kept
+    # (remember) refine it the moment the group forms or grows, before any frame to come
+    sheet = _sheet((0, 1, 2, 3, 4, 5))
+    rng = np.random.default_rng(11)
+    learner = GroupLearner(_config())
+    refined = []
+    for frame in range(150):
+        camera = _camera(frame, distance=1.2)
+        measured = _measure({i: camera.compose(p) for i, p in sheet.items()}, rng, noise_px=0.5)
+        learner.learn(measured, CAMERA)
+        for name in sorted(learner.changed):
+            group = learner.groups[name]
+            before = _layout_error_mm(group, sheet)
+            used = learner.refine_from_past(name)
+            if len(group.layout) >= 3:
+                assert used >= 15, used  # (every other frame of the last 2 s at 30 fps, solved from 3 markers)
+                refined.append((before, _layout_error_mm(group, sheet)))
+        ids = np.array([name.marker_id for name in measured], np.int32)
+        corners = np.stack([m.corners_in_image for m in measured.values()])
+        for name, solved in learner.solve(ids, corners, CAMERA, 3.0).items():
+            if isinstance(solved, BoardPose):
+                measured = {**measured, name: solved}
+        learner.remember(int(frame * 1e9 / 30), ids, corners, CAMERA, 3.0, False)
+        learner.settle(measured)
+    assert refined, "no group of three markers or more formed"
+    # measured: 2.15 to 0.84 mm when the third marker joins, then 0.7-1.0 mm (the 0.5 px noise is 1.2 mm here)
+    assert refined[0][1] < 0.6 * refined[0][0], refined
+    assert all(after < 1.5 for _, after in refined), refined
+    solved = [list(learner.past_solves(name)) for name in learner.groups]
+    assert all(len(frames) == 30 and all(s is not None for _, s in frames) for frames in solved)  # (the last 1 s)
 
 
 def test_groups_config_reads_and_rejects_bad_values():
