@@ -25,10 +25,11 @@ With ``[groups] learn = true`` (``--learn-groups``) the tracker learns such grou
    while nothing moves): they are grouped, the event says the evidence is a constant pose across
    viewpoints, and the first one to move leaves (4).
 3. **Groups**: rigid pairs link markers into groups (a rigid pair with a member adds a marker; one
-   between two groups merges them). A group's layout is its members' poses in its anchor marker's frame
-   (the anchor: the group's first marker); a layout whose markers lie in one plane (within
-   :data:`_PLANAR_SHARE` of its extent, normals within :data:`_PLANAR_TILT_DEG`) is made exactly planar, so the
-   group is solved as a planar board (both IPPE solutions kept). Each group is a target of its own,
+   between two groups merges them). A group's layout is its members' poses in the group's frame: turned
+   as its anchor (its first marker), centred on its members' corners (:meth:`LearnedGroup.recentre`); a
+   layout whose markers lie in one plane (within :data:`_PLANAR_SHARE` of its extent, normals within
+   :data:`_PLANAR_TILT_DEG`) is made exactly planar, so the group is solved as a planar board (both IPPE
+   solutions kept). Each group is a target of its own,
    ``board:group-N``, solved like a board (:class:`~.pose.BoardSolver`: RANSAC over its members'
    corners, then LM on the inliers) and passed through the same flip filter. When a group forms or
    grows, the tracker does not start it from nothing: a planar group's layout is refined at once from the
@@ -249,8 +250,8 @@ def _near(mode: _Mode, rotation: np.ndarray, translation: np.ndarray) -> bool:
 
 @dataclass
 class LearnedGroup:
-    """A group of markers found rigid together: its layout (``group_from_marker`` per member, the anchor's
-    the identity) and the board solver built from it."""
+    """A group of markers found rigid together: its layout (``group_from_marker`` per member, in a frame
+    turned as its anchor and centred on its members, :meth:`recentre`) and the board solver built from it."""
 
     number: int
     anchor: int
@@ -287,6 +288,17 @@ class LearnedGroup:
             corners.append((marker_id, tuple(tuple(float(v) for v in p) for p in points)))
         board = BoardConfig(name=self.name, kind="custom", layout=tuple(corners), dictionary=self.dictionary)
         self.solver = BoardSolver(board, self.inlier_px)
+
+    def recentre(self) -> None:
+        """Move the group's frame to its members' centroid (turned as it was), after a join or a merge: a
+        joint pose's position is surest there, uncoupled from its rotation, so the filter smooths the two
+        apart, as it does a board's (a frame at one corner marker would carry the rotation's noise, times
+        the lever, into every member's position). The tracker then restarts the group's track."""
+        centre = np.concatenate(list(self.corners().values())).mean(axis=0)
+        shift = Pose(np.zeros(3), -centre)
+        self.layout = {i: shift.compose(pose) for i, pose in self.layout.items()}
+        self.samples.clear()  # (measured in the frame before)
+        self.rebuild()
 
     def take_means(self, sums: dict[int, list]) -> bool:
         """The layout becomes the members' mean poses in the group's frame (``sums``: member -> [rotation
@@ -454,6 +466,7 @@ class GroupLearner:
             while group.name in self._reserved:
                 group.number = next(self._numbers)
                 group.rebuild()
+            group.recentre()
             self.groups[group.target] = group
             self.changed.add(group.target)
             self.member_of.update({first: group.target, second: group.target})
@@ -471,7 +484,7 @@ class GroupLearner:
             self.changed.add(g1)
             a.samples.clear()
             a.settled = False
-            a.rebuild()
+            a.recentre()
             events.setdefault(g1, []).append(
                 f"merged {b.name} (markers {b.describe()}) through markers {first} and {second}: {evidence}"
             )
@@ -488,7 +501,7 @@ class GroupLearner:
         self.member_of[new] = group.target
         self.changed.add(group.target)
         group.settled = False
-        group.rebuild()
+        group.recentre()
         events.setdefault(group.target, []).append(f"marker {new} joined: {evidence}")
 
     # ------------------------------------------------------------------ solving
@@ -666,7 +679,7 @@ class GroupLearner:
 
     def _sample(self, group: LearnedGroup, solved: BoardPose, measured: dict[TargetId, MarkerPose | BoardPose]) -> None:
         """Each inlier member's pose in the group's frame this frame, summed; every :data:`_REFINE_EVERY`
-        frames the layout becomes those means (the anchor's frame stays). A planar group's member: its
+        frames the layout becomes those means (:meth:`LearnedGroup.take_means`). A planar group's member: its
         corners' rays met with the group's plane (flip-free, and no lone depth in it: a small marker's
         distance is its least sure part). Sampled whether or not the group's flip is decided: the two
         solutions of an ambiguous planar group reproject its corners alike, so either plane gives the same

@@ -290,6 +290,8 @@ def test_a_planar_group_formed_or_grown_is_refined_at_once_from_the_frames_befor
     # measured: 2.15 to 0.84 mm when the third marker joins, then 0.7-1.0 mm (the 0.5 px noise is 1.2 mm here)
     assert refined[0][1] < 0.6 * refined[0][0], refined
     assert all(after < 1.5 for _, after in refined), refined
+    for group in learner.groups.values():  # the group's frame: at its members' centroid (recentred at each join)
+        assert np.linalg.norm(np.concatenate(list(group.corners().values())).mean(axis=0)) < 0.002
     solved = [list(learner.past_solves(name)) for name in learner.groups]
     assert all(len(frames) == 30 and all(s is not None for _, s in frames) for frames in solved)  # (the last 1 s)
 
