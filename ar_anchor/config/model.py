@@ -143,6 +143,15 @@ class MarkersConfig:
         return self.lengths_m.get(int(marker_id), self.length_m)
 
 
+def _readout_problem(value: float, _limit: int) -> str | None:
+    """A readout time's problem: out of [0, 1] s, with a hint when it looks like milliseconds."""
+    if 0.0 <= value <= 1.0:
+        return None
+    if 1.0 < value <= 1000.0:
+        return f"must be in [0, 1] seconds: milliseconds? {value:g} ms is {value / 1000:g}"
+    return "must be in [0, 1] seconds"
+
+
 @dataclass(frozen=True)
 class PoseConfig:
     """Pose estimation and validation (see :mod:`ar_anchor.track.pose`)."""
@@ -158,7 +167,7 @@ class PoseConfig:
         0.0,
         "the camera's rolling-shutter readout, first row to last, seconds (0: a global shutter, or unknown); "
         "each marker's corners are then taken back to the frame's first-row time with its image velocity",
-        in_range(0.0, 1.0),
+        Check("must be in [0, 1] seconds", _readout_problem),
     )
 
 

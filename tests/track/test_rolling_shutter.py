@@ -53,6 +53,8 @@ def test_the_readout_is_read_and_checked():
     assert TrackerConfig().pose.rolling_shutter_s == 0.0  # off: a global shutter, or unknown
     with pytest.raises(Exception, match=r"\[pose\] rolling_shutter_s"):
         parse_config({"pose": {"rolling_shutter_s": -0.01}})
+    with pytest.raises(Exception, match=r"milliseconds\? 20 ms is 0.02"):  # a likely mistake gets a hint
+        parse_config({"pose": {"rolling_shutter_s": 20}})
 
 
 def test_a_detection_that_jumped_gives_no_velocity():
