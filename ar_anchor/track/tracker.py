@@ -140,6 +140,7 @@ class Tracker:
         self._previous: FrameResult | None = None
         self._seen: dict[int, tuple[np.ndarray, int]] = {}  # marker id -> (last corners, when)
         self._shutter_previous: tuple[int, dict[int, np.ndarray]] | None = None  # (see _at_first_row)
+        self._shutter_warned = False
         self._frames_since_full = 0
         self._frames_since_thorough = 0  # frames since the last thorough full-frame search (see _search_whole_frame)
         self._last_size: tuple[int, int] | None = None
@@ -444,6 +445,14 @@ class Tracker:
         dt = (frame.timestamp_ns - then_ns) * 1e-9
         if not 0 < dt <= max(self.config.filter.restart_gap_s, 1e-9):
             return detections
+        if readout > dt * 1.05 and not self._shutter_warned:  # a camera reads its frame out within the frame
+            self._shutter_warned = True
+            log.warning(
+                "[pose] rolling_shutter_s = %g s is longer than the time between frames (%.3g s): no camera reads "
+                "out slower than its frame rate; is it the readout of this camera, in seconds?",
+                readout,
+                dt,
+            )
         height = frame.image.shape[0]
         corners = detections.corners.copy()
         for k, marker_id in enumerate(detections.ids.tolist()):

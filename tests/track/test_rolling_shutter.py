@@ -66,3 +66,17 @@ def test_a_detection_that_jumped_gives_no_velocity():
     corner_off = square.copy()
     corner_off[2] += 3.0  # one corner 3 px off the square: an edge fitted to the wrong side, a swapped corner
     assert _jumped(square, corner_off) and _jumped(square, np.full((4, 2), np.nan))
+
+
+def test_a_readout_longer_than_the_frame_interval_is_warned_about(caplog):
+    scenario = Scenario("rs", 0.06, 0.5, "handheld", resolution=(320, 240), frames=3, seed=3)
+    config = TrackerConfig()
+    camera = scenario.camera_model(CameraModel.from_fov(640, 480, 500.0))
+    frames = list(SyntheticSource(scenario.scene(camera, config.detector.dictionary)))
+    config = scenario.tracker_config(config)
+    tracker = Tracker(dataclasses.replace(config, pose=dataclasses.replace(config.pose, rolling_shutter_s=1.0)), camera)
+    with caplog.at_level("WARNING"):
+        for frame in frames:
+            tracker.process(frame)
+    warnings = [r.getMessage() for r in caplog.records if "rolling_shutter_s" in r.getMessage()]
+    assert len(warnings) == 1 and "longer than the time between frames" in warnings[0]
