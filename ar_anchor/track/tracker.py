@@ -387,6 +387,10 @@ class Tracker:
         layouts: dict[TargetId, GroupLayout] = {}
         if self.groups is not None:
             events = self.groups.learn(measured, camera)
+            self._end_group_tracks()
+            if self.config.filter.enabled:  # (before this frame's solve: it uses the layout refined there)
+                for name in sorted(self.groups.changed & set(self.groups.groups)):
+                    events.setdefault(name, []).append(self._warm_group_track(name))
             for name, solved_group in self.groups.solve(
                 detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, image=frame.image
             ).items():
@@ -395,10 +399,6 @@ class Tracker:
                 else:
                     measured[name] = solved_group
             layouts = self.groups.layouts()
-            self._end_group_tracks()
-            if self.config.filter.enabled:
-                for name in sorted(self.groups.changed & set(self.groups.groups)):
-                    events.setdefault(name, []).append(self._warm_group_track(name))
             self.groups.remember(
                 frame.timestamp_ns, detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, blurred
             )
