@@ -73,7 +73,7 @@ from ..config import BoardConfig, FilterConfig, GroupsConfig, TrackerConfig
 from ..geometry import Pose, angle_between_deg, marker_corners_in_marker, mean_rotation
 from ..targets import TargetId, TrackState
 from .filtering import decided_alone
-from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, reprojection_rms
+from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms
 
 __all__ = ["GROUP_PREFIX", "GroupLayout", "GroupLearner", "LearnedGroup", "members_from_groups"]
 
@@ -559,10 +559,7 @@ class GroupLearner:
                     )  # fmt: skip
                     if sample is None:
                         continue
-                    total = sums.setdefault(marker_id, [np.zeros((3, 3)), np.zeros(3), 0])
-                    total[0] = total[0] + sample.rotation
-                    total[1] = total[1] + sample.tvec
-                    total[2] += 1
+                    _add_sample(sums, marker_id, sample)
             if not group.take_means(sums):
                 return 0
         return used
@@ -640,8 +637,7 @@ class GroupLearner:
             if not isinstance(lone, MarkerPose) or marker_id not in group.layout:
                 continue
             expected = solved.best.pose.compose(group.layout[marker_id]).rotation
-            nearest = max(lone.hypotheses, key=lambda h: float(np.vdot(h.pose.rotation, expected)))
-            turn = Pose.from_matrix(nearest.pose.rotation.T @ expected, np.zeros(3)).rvec
+            turn = Pose.from_matrix(_nearest(lone, expected).pose.rotation.T @ expected, np.zeros(3)).rvec
             stats = group.turn.get(marker_id)  # [mean turn, mean squared turn, weight]
             if stats is None:
                 group.turn[marker_id] = [turn, float(turn @ turn), 1.0]
@@ -697,12 +693,8 @@ class GroupLearner:
                 sample = _on_plane(lone.corners_in_image, lone.length_m, group_pose, group.layout[group.anchor], camera)
             if sample is None:
                 expected = group_pose.compose(group.layout[marker_id]).rotation
-                nearest = min(lone.hypotheses, key=lambda h: float(np.vdot(h.pose.rotation, -expected)))
-                sample = group_from_camera.compose(nearest.pose)
-            sums = group.samples.setdefault(marker_id, [np.zeros((3, 3)), np.zeros(3), 0])
-            sums[0] = sums[0] + sample.rotation
-            sums[1] = sums[1] + sample.tvec
-            sums[2] += 1
+                sample = group_from_camera.compose(_nearest(lone, expected).pose)
+            _add_sample(group.samples, marker_id, sample)
         group.since_refined += 1
         if group.since_refined < _REFINE_EVERY:
             return
@@ -713,6 +705,20 @@ class GroupLearner:
             after = group.corners()
             moved = max(float(np.abs(after[i] - before[i]).max()) for i in after if i in before)
             group.settled = moved <= _SETTLED_M
+
+
+def _add_sample(sums: dict[int, list], marker_id: int, sample: Pose) -> None:
+    """Add a member's pose in the group's frame to ``sums`` (member -> [rotation sum, translation sum, count],
+    as :meth:`LearnedGroup.take_means` reads them)."""
+    total = sums.setdefault(marker_id, [np.zeros((3, 3)), np.zeros(3), 0])
+    total[0] = total[0] + sample.rotation
+    total[1] = total[1] + sample.tvec
+    total[2] += 1
+
+
+def _nearest(lone: MarkerPose, rotation: np.ndarray) -> PoseHypothesis:
+    """The marker's solution whose rotation is nearest ``rotation`` (the group's choice of its planar flip)."""
+    return max(lone.hypotheses, key=lambda h: float(np.vdot(h.pose.rotation, rotation)))
 
 
 def _on_plane(

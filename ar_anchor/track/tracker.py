@@ -399,9 +399,11 @@ class Tracker:
                 else:
                     measured[name] = solved_group
             layouts = self.groups.layouts()
-            self.groups.remember(
-                frame.timestamp_ns, detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, blurred
-            )
+            if self.config.filter.enabled:  # (kept only for the catch-up above)
+                self.groups.remember(
+                    frame.timestamp_ns, detections.ids, detections.corners, camera, self.config.pose.max_reproj_px,
+                    blurred,
+                )  # fmt: skip
         t2 = time.perf_counter()
         if self.config.filter.enabled:
             targets = self._filter(measured, frame.timestamp_ns, camera, blurred)
