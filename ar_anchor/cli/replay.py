@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import EXIT_FAILURE, printable
 from .export import add_export_options, export_after_run, export_outputs
@@ -22,6 +22,9 @@ from .options import (
     run_options,
 )
 from .report import Progress, finish
+
+if TYPE_CHECKING:
+    from ..sources.base import SourceInfo
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +60,18 @@ def add_replay_options(parser: argparse.ArgumentParser) -> None:
         help="camera YAML (default: camera.yml beside SOURCE, as `live --record` writes it)",
     )
     add_tracker_options(parser)
-    parser.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of image folders (default 30)")
+    parser.add_argument(
+        "--fps",
+        type=positive_float,
+        default=None,
+        help="frame rate of image folders (default 30); giving it says the images are a sequence (--sequence)",
+    )
+    parser.add_argument(
+        "--sequence",
+        action="store_true",
+        help="an image folder or glob holds one video's frames, in order: track them as a sequence (flip filter, "
+        "offline replay) instead of as independent stills, each decided alone (the default for images)",
+    )
     parser.add_argument(
         "--causal",
         action="store_true",
@@ -81,6 +95,57 @@ def _replay_camera(args: argparse.Namespace) -> Path:
     return beside
 
 
+FRAMES_CSV = "frames.csv"
+
+
+def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
+    """Are the source's frames independent stills (an image folder or glob, without ``--sequence`` or
+    ``--fps``)? Says which was assumed, in one line (unless ``-q``; summary.json's ``decided_with`` says it
+    too)."""
+    if not info.stills:
+        return False
+    sequence = getattr(args, "sequence", False) or args.fps is not None
+    count = f"{info.frame_count} image(s)" if info.frame_count is not None else "the images"
+    if sequence:
+        note = f"{count} tracked as one sequence, in order"
+    else:
+        note = f"{count} taken as independent stills, each decided alone (--sequence if they are one video's frames)"
+    if not args.quiet:
+        print(f"{printable(args.source)}: {note}", flush=True)
+    return not sequence
+
+
+def decided_with(stills: bool, offline: bool, filtered: bool) -> str:
+    """How each frame was decided (summary.json's ``decided_with``)."""
+    if stills:
+        return "each image alone (independent stills)"
+    if not filtered:
+        return "each frame alone (--no-filter)"
+    return "the whole recording" if offline else "the frames before each (causal)"
+
+
+def write_frames_csv(path: Path, source: Any) -> None:
+    """``frames.csv``: which file each frame of an image source is (``frame`` is poses.csv's column), with the
+    timestamp given to it. Written whole before the run, so it is complete whatever happens to the run."""
+    import csv
+    import io
+    import os
+
+    from ..run.outputs import write_failure
+
+    fps = source.info.fps or 30.0
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow(["frame", "timestamp_s", "file"])
+    for index, file in enumerate(source.files):
+        writer.writerow([index, f"{index / fps:.9f}", os.fsdecode(file)])
+    try:
+        with open(path, "w", encoding="utf-8", errors="backslashreplace", newline="") as out:
+            out.write(text.getvalue())
+    except OSError as err:
+        raise write_failure(path, err) from None
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     """``ar-anchor replay SOURCE``: track a video file or images and record the run; the exit code."""
     from ..camera import CameraModel
@@ -94,6 +159,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     with open_source(args.source, live=False, fps=args.fps) as source:
         camera_path = _replay_camera(args)
         camera = camera_for_source(CameraModel.from_yaml(camera_path), source.resolution, f"--camera {camera_path}")
+        stills = stills_assumed(args, source.info)
+        if stills:  # each image alone: exactly the per-frame pipeline, nothing carried from one to the next
+            config = config.with_overrides(filter_enabled=False)
         options = run_options(
             args,
             f"replay {args.source}",
@@ -102,7 +170,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         )
         out_dir = args.out or default_out("replay")
         inputs = source_inputs(source) + config_inputs(config, args.config, camera_path)
-        outputs_named = run_output_paths(out_dir, video_out=args.video_out, extra=export_outputs(args, out_dir))
+        frames_csv = [("--out", out_dir / FRAMES_CSV)] if hasattr(source, "files") else []
+        outputs_named = run_output_paths(
+            out_dir, video_out=args.video_out, extra=[*export_outputs(args, out_dir), *frames_csv]
+        )
         offline = None
         if not args.causal and config.filter.enabled:  # (--no-filter: nothing to decide with hindsight)
             offline = OfflineReplay(
@@ -113,15 +184,17 @@ def cmd_replay(args: argparse.Namespace) -> int:
         try:
             with claim_out_dir(out_dir, outputs_named, inputs):
                 clear_previous_exports(out_dir)  # they belong to the poses.csv this run replaces
+                if frames_csv:
+                    write_frames_csv(out_dir / FRAMES_CSV, source)
                 outputs = run_session(
                     source,
-                    Tracker(config, camera),
+                    Tracker(config, camera, stills=stills),
                     out_dir,
                     options,
                     progress=progress,
                     summary_extras=lambda: {
                         "source_ended_early": source.info.ended_early,
-                        "decided_with": "the frames before each (causal)" if offline is None else "the whole recording",
+                        "decided_with": decided_with(stills, offline is not None, config.filter.enabled),
                     },
                     offline=offline,
                 )

@@ -160,6 +160,13 @@ class PoseConfig:
     board_inlier_px: float = key(
         3.0, "boards: a marker (or corner) farther than this from the joint pose is an outlier, pixels", positive
     )
+    fit_margin_px: float = key(
+        1.0,
+        "an output pose (filtered, smoothed, a board's or group's) must reproject on its own frame's corners within "
+        "this of the frame's best solution's RMS error, pixels; else that frame's own solution is output and its "
+        "track restarts",
+        positive,
+    )
     recover_markers: bool = key(
         True, "boards: look again for missing markers where the board says they are (refineDetectedMarkers)"
     )

@@ -74,6 +74,8 @@ class SourceInfo:
     ended_early : the stream stopped before its announced end (a damaged or truncated file, or a frame
         size that changes mid-stream).
     ended_because : why it stopped early, one line for the user ("" when it did not).
+    stills : the frames are separate image files (a folder or a glob): photos that may be unrelated, which a
+        replay decides each alone unless told they are one video's frames (``--sequence``).
     """
 
     live: bool = False
@@ -83,6 +85,7 @@ class SourceInfo:
     video_path: Path | None = None
     ended_early: bool = False
     ended_because: str = ""
+    stills: bool = False
 
 
 @runtime_checkable

@@ -168,7 +168,7 @@ class ImageFolderSource(ClosingSource):
 
     @property
     def info(self) -> SourceInfo:
-        return SourceInfo(fps=self._fps, frame_count=len(self.files))
+        return SourceInfo(fps=self._fps, frame_count=len(self.files), stills=True)
 
     def close(self) -> None:
         pass

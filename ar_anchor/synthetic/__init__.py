@@ -2,8 +2,9 @@
 
 - :mod:`.scene`: the scene (:class:`SyntheticScene`): lone markers, grid boards and sheets placed on a
   cluttered wall, lighting changes, a hand crossing the view, frame timing, and each frame's truth.
-- :mod:`.trajectory`: how the camera moves (:class:`Trajectory`): calm sweeps and orbits, or a
-  hand-held webcam (sway, tremor, quick turns).
+- :mod:`.trajectory`: how the camera moves (:class:`Trajectory`): calm sweeps and orbits, a
+  hand-held webcam (sway, tremor, quick turns), unrelated stills one per frame
+  (:func:`turntable_stills`), or a video with a cut between paths.
 - :mod:`.render`: how a camera renders it (:class:`Renderer`): textured quads through the exact
   pinhole homography, lens distortion, motion blur and rolling shutter, optics, noise, JPEG and H.264.
 
@@ -29,11 +30,12 @@ from .scene import (
     marker_sheet,
     webcam_camera,
 )
-from .trajectory import Trajectory
+from .trajectory import StillView, Trajectory, still_view, turntable_stills
 
 __all__ = [
     "COMPRESSIONS",
     "SKIN_BGR",
+    "StillView",
     "H264RoundTrip",
     "Lighting",
     "Occluder",
@@ -47,5 +49,7 @@ __all__ = [
     "demo_scene",
     "marker_sheet",
     "pinhole_canvas",
+    "still_view",
+    "turntable_stills",
     "webcam_camera",
 ]

@@ -155,6 +155,8 @@ class Bridge:
                 return None, False
             decided = plan.decided[later]
             if decided is not None and name in decided.names:
+                if decided.segment_starts[decided.names.index(name)]:
+                    return None, False  # a new track segment starts there (a cut, a jump): nothing bridges to it
                 steady = not (
                     blurred
                     # the whole view lost its fine detail: the camera jerked

@@ -40,11 +40,12 @@ from typing import Any
 
 import numpy as np
 
-from ..config import FilterConfig, TrackerConfig
+from ..config import FilterConfig, PoseConfig, TrackerConfig
 from ..geometry import Pose, angle_between_deg
 from ..targets import TargetId, TrackState
-from .filtering import TargetTrack, TrackUpdate, so3_exp, so3_log
-from .filtering.track import EVIDENCE_DOUBTS
+from .filtering import TargetTrack, TrackUpdate, decided_alone, so3_exp, so3_log
+from .filtering.track import EVIDENCE_DOUBTS, SEGMENT_STARTS
+from .fit import refit
 from .gaps import Bridge
 from .groups import members_from_groups
 from .spool import FrameStore, SpoolStore
@@ -65,6 +66,7 @@ class _Decided:
     poses: np.ndarray  # (K, 6): rvec, tvec
     choices: tuple[int, ...]  # index of the chosen solution in the frame's measurement
     causal_choices: tuple[int, ...]  # the forward (live) pass's, -1 where it published nothing
+    segment_starts: tuple[bool, ...]  # the forward pass started a new track segment here (a cut, a jump, a refit)
 
     def pose(self, k: int) -> Pose:
         return Pose(self.poses[k, :3], self.poses[k, 3:])
@@ -81,6 +83,7 @@ class OfflinePlan:
     blurred: np.ndarray  # (frames,) bool: motion-blurred frames (no gap is bridged across one)
     detail: np.ndarray  # (frames,) each frame's fine-scale contrast (FrameResult.detail)
     measured: np.ndarray  # (frames,) how many targets each frame measured
+    fit_margin_px: float = PoseConfig().fit_margin_px  # [pose] fit_margin_px: every output fits its frame
 
     def __len__(self) -> int:
         return len(self.decided)
@@ -92,6 +95,7 @@ def decide(
     """The backward pass over ``frames`` (the causal pass's results, in order) and, frame by frame, the
     flip and pose decided from both passes (see the module doc). ``progress(done, total)`` after each
     frame."""
+    margin = config.pose.fit_margin_px if isinstance(config, TrackerConfig) else PoseConfig().fit_margin_px
     config = config.filter if isinstance(config, TrackerConfig) else config
     count = len(frames)
     timestamps = np.zeros(count, np.int64)
@@ -114,10 +118,13 @@ def decide(
             updates = update_tracks(
                 tracks, result.measurements, end_ns - result.timestamp_ns, result.camera, result.blurred, config
             )
-            decided[position] = _decide_frame(result, {k: u for k, u in updates.items() if u is not None})
+            decided[position] = _decide_frame(result, {k: u for k, u in updates.items() if u is not None}, config)
+            for name in decided[position].names:  # (a new segment of the live track: none of its past carried)
+                if decided[position].segment_starts[decided[position].names.index(name)]:
+                    tracks.pop(name, None)
         if progress is not None:
             progress(done, count)
-    return OfflinePlan(config, timestamps, decided, blurred, detail, measured)
+    return OfflinePlan(config, timestamps, decided, blurred, detail, measured, margin)
 
 
 def _chosen(hypotheses: Sequence[Pose], pose: Pose) -> int:
@@ -148,13 +155,16 @@ def _mean_pose(weighted: Sequence[tuple[Pose, int]]) -> Pose:
     return Pose.from_matrix(rotation, a.tvec + share * (b.tvec - a.tvec))
 
 
-def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate]) -> _Decided:
+def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate], config: FilterConfig) -> _Decided:
     """The flip and the pose of every target measured in ``result``, from the forward pass (``result``'s
     own targets) and the backward pass's ``backward`` updates (see the module doc)."""
-    names, states, poses, choices, causal = [], [], [], [], []
+    names, states, poses, choices, causal, starts = [], [], [], [], [], []
     for name in TargetId.ordered(result.measurements):
-        hypotheses = [h.pose for h in result.measurements[name].hypotheses]
+        measurement = result.measurements[name]
+        hypotheses = [h.pose for h in measurement.hypotheses]
+        alone = decided_alone(measurement.hypotheses, config, len(measurement.points_in_target))
         forward = result.targets.get(name)
+        starts.append(forward is None or any(event.kind in SEGMENT_STARTS for event in forward.events))
         if forward is not None and not forward.measured:
             forward = None
         back = backward.get(name)
@@ -166,7 +176,7 @@ def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate]) ->
             else _chosen(hypotheses, _branch_pose(forward.branch_poses, forward.branch, forward.pose))
         )
         b_choice = -1 if back is None else _chosen(hypotheses, _branch_pose(back.hypotheses, back.branch, back.pose))
-        state, choice = _flip(result.blurred, forward, f_choice, back, b_choice)
+        state, choice = _flip(result.blurred, forward, f_choice, back, b_choice, alone)
         if state is TrackState.TRACKED:  # both passes' smoothed poses on the chosen solution, weighted
             on_choice = [(p.pose, p.run_frames) for p, c in ((forward, f_choice), (back, b_choice)) if c == choice]
             pose = _mean_pose(on_choice)  # type: ignore[union-attr]
@@ -178,11 +188,16 @@ def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate]) ->
         choices.append(choice)
         causal.append(f_choice)
     array = np.array(poses, np.float64).reshape(-1, 6)
-    return _Decided(tuple(names), tuple(states), array, tuple(choices), tuple(causal))
+    return _Decided(tuple(names), tuple(states), array, tuple(choices), tuple(causal), tuple(starts))
 
 
 def _flip(
-    blurred: bool, forward: TargetResult | None, f_choice: int, back: TrackUpdate | None, b_choice: int
+    blurred: bool,
+    forward: TargetResult | None,
+    f_choice: int,
+    back: TrackUpdate | None,
+    b_choice: int,
+    alone: bool = False,
 ) -> tuple[TrackState, int]:
     """A measured frame's state and solution from the two passes (measured there, else None):
 
@@ -193,13 +208,27 @@ def _flip(
       itself (blur, an outlier, a spike, a glide);
     - neither vouching, both committed to the same solution with only such doubts: the evidence before
       and after the frame agree, the frame's own close call cannot overturn them: ``tracked``;
-    - else ``ambiguous`` on the forward pass's solution (the live filter's)."""
-    f_sure = forward is not None and forward.state is TrackState.TRACKED
-    b_sure = back is not None and back.state is TrackState.TRACKED
+    - else ``ambiguous`` on the forward pass's solution (the live filter's).
+
+    Motion blur (``blurred``) is no doubt on a pass standing on the frame's lower-error solution when the
+    frame alone decides the flip (``alone``: :func:`~.filtering.decided_alone`): the frame settles its own
+    flip, as a later frame settles an earlier one's. (The whole-frame blur test compares sharpness with its
+    running typical value, which a slow change of view, a marker growing to fill the image, can leave
+    behind for good: on an approach every near frame, each decisive, was ``blurred``.)"""
+
+    def doubts(p: TargetResult | TrackUpdate, c: int) -> set[str]:
+        return set(p.doubts) - {"blurred"} if alone and c == 0 else set(p.doubts)
+
+    def sure(p: TargetResult | TrackUpdate | None, c: int) -> bool:
+        return p is not None and (p.state is TrackState.TRACKED or bool(p.doubts) and not doubts(p, c))
+
+    f_sure, b_sure = sure(forward, f_choice), sure(back, b_choice)
     if f_sure:
         return (TrackState.TRACKED if not b_sure or b_choice == f_choice else TrackState.AMBIGUOUS), f_choice
     choice = f_choice if f_choice >= 0 else max(b_choice, 0)
-    pose_doubted = blurred or any(not EVIDENCE_DOUBTS.issuperset(p.doubts) for p in (forward, back) if p is not None)
+    pose_doubted = (blurred and not (alone and choice == 0)) or any(
+        not EVIDENCE_DOUBTS.issuperset(doubts(p, c)) for p, c in ((forward, f_choice), (back, b_choice)) if p is not None
+    )
     if pose_doubted:
         return TrackState.AMBIGUOUS, choice
     if b_sure:
@@ -233,6 +262,11 @@ def offline_results(frames: FrameStore[FrameResult], plan: OfflinePlan) -> Itera
         ordered = {name: targets[name] for name in TargetId.ordered(targets)}
         if causal.groups:  # learned rigid groups: members of a tracked group take its pose
             ordered = members_from_groups(ordered, causal.groups, causal.camera, as_member)
+        for name in decided.names:  # every output fits its own frame (see track/fit.py)
+            assert causal.camera is not None
+            fitted = refit(ordered[name], causal.measurements[name], causal.camera, plan.config, plan.fit_margin_px)
+            if fitted is not None:
+                ordered[name] = fitted[0]
         previous = dataclasses.replace(causal, targets=ordered, causal_targets=causal.targets)
         yield previous
 

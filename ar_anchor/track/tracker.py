@@ -34,6 +34,7 @@ from .filtering import (
     decided_alone,
     unit_covariances_of,
 )
+from .fit import refit
 from .groups import GroupLayout, GroupLearner, members_from_groups
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
 
@@ -112,7 +113,8 @@ class FrameResult:
 
 
 class Tracker:
-    """Stateful per-stream tracker. Feed frames in order to :meth:`process`.
+    """Stateful per-stream tracker. Feed frames in order to :meth:`process`. ``stills``: the frames are
+    independent photos, each processed alone (as by a new tracker: nothing carried from one to the next).
 
     Example
     -------
@@ -123,8 +125,10 @@ class Tracker:
 
     _BLUR_RATIO = 0.6  # a frame this much less sharp than usual is motion-blurred
 
-    def __init__(self, config: TrackerConfig, camera: CameraModel) -> None:
+    def __init__(self, config: TrackerConfig, camera: CameraModel, *, stills: bool = False) -> None:
         self.config = config
+        # independent stills (photos that may be unrelated): each frame processed as by a new tracker
+        self.stills = stills
         self.camera = camera
         self.detector = Detector(config.detector)
         self._cameras: dict[tuple[int, int], CameraModel] = {camera.size: camera}
@@ -293,6 +297,8 @@ class Tracker:
         pixels (a 30 fps container carrying 12 fps content) returns the previous answer, marked
         ``repeated``: it is no new measurement.
         """
+        if self.stills:
+            self.reset()
         fingerprint = _every_4th_pixel(frame.image)
         candidate = self._previous is not None and self._repeats(fingerprint)
         result = self._process(frame, self._blurred(fingerprint), repeat_candidate=candidate)
@@ -411,6 +417,8 @@ class Tracker:
             targets = {name: self._raw_result(name, measured[name], camera) for name in TargetId.ordered(measured)}
         if self.groups is not None:
             targets = self._settle_groups(targets, measured, layouts, events, camera)
+        if self.config.filter.enabled:  # (without it every output is the frame's own best solution)
+            targets = self._fit_to_frame(targets, measured, frame.timestamp_ns, camera, blurred)
         t3 = time.perf_counter()
         latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
         return FrameResult(
@@ -525,6 +533,36 @@ class Tracker:
             if name in targets:
                 extra = tuple(TrackEvent("group", message) for message in messages)
                 targets[name] = dataclasses.replace(targets[name], events=(*targets[name].events, *extra))
+        return targets
+
+    def _fit_to_frame(
+        self,
+        targets: dict[TargetId, TargetResult],
+        measured: dict[TargetId, MarkerPose | BoardPose],
+        timestamp_ns: int,
+        camera: CameraModel,
+        blurred: bool,
+    ) -> dict[TargetId, TargetResult]:
+        """Every measured output checked against its own frame (:func:`~.fit.refit`): one that misses the
+        frame's corners is moved just enough to fit (a spike held back, a lag) or, held over a cut or on the
+        other solution, replaced by the frame's own best solution, and the target's track restarts from it."""
+        for name, target in targets.items():
+            solved = measured.get(name)
+            fitted = (
+                None
+                if solved is None
+                else refit(target, solved, camera, self.config.filter, self.config.pose.fit_margin_px)
+            )
+            if fitted is None:
+                continue
+            assert solved is not None
+            replaced, restart = fitted
+            log.info("%s: %s", name, replaced.events[-1].message)
+            track = self.tracks.get(name)
+            if restart and track is not None:
+                started = track.restart_from(solved, timestamp_ns, camera, blurred=blurred)
+                replaced = dataclasses.replace(replaced, events=(*replaced.events, *started))
+            targets[name] = replaced
         return targets
 
     def _filter(

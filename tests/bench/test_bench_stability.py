@@ -150,8 +150,9 @@ def test_scenario_config_tracks_exactly_the_scene_markers():
 
 def test_the_grid_keeps_the_calm_scenarios_and_adds_handheld_ones():
     full, quick = stability_scenarios(), stability_scenarios(quick=True)
-    calm = [s for s in full if s.motion != "handheld"]
+    calm = full[:15]  # then the issue-32 scenes (tests/bench/test_bench_stability_scenes.py), then hand-held
     handheld = [s for s in full if s.motion == "handheld"]
+    assert all(s.motion not in ("handheld", "stills", "cut") for s in calm)
     assert len(calm) == 15 and calm[0].name == "static 12cm 0.5m tilt30" and calm[0].frames == 150
     approach = [s for s in calm if s.motion == "approach"]  # issue 20: ambiguous far, decisive near
     assert [(s.far_m, s.distance_m, s.marker_m) for s in approach] == [(4.0, 0.5, 0.04)]

@@ -194,7 +194,11 @@ def replays(sequence, tmp_path_factory):
     cwd = tmp_path_factory.mktemp("replays")
     sources = {"png": sequence.png_dir, "ffv1": sequence.mkv, "vp9": sequence.mp4}
     commands = {
-        kind: (["-q", "replay", str(source), "--camera", str(sequence.camera_yml), "--out", f"out_{kind}"], cwd)
+        kind: (
+            ["-q", "replay", str(source), "--camera", str(sequence.camera_yml), "--out", f"out_{kind}"]
+            + (["--sequence"] if kind == "png" else []),  # (a video's frames as images: a sequence, not stills)
+            cwd,
+        )
         for kind, source in sources.items()
         if source is not None
     }
@@ -485,7 +489,7 @@ def test_sigint_before_an_offline_replay_writes_leaves_empty_complete_outputs_an
     # given a replay decided with the whole recording, long enough that its first pass takes seconds
     folder = long_folder(tmp_path, sequence, 1500)
     out = tmp_path / "out"
-    argv = ["replay", str(folder), "--camera", str(sequence.camera_yml), "--out", str(out)]
+    argv = ["replay", str(folder), "--camera", str(sequence.camera_yml), "--out", str(out), "--sequence"]
     process = subprocess.Popen(cli(argv), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         # when it is interrupted during its first pass (the summary says the run is going, nothing written)

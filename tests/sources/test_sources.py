@@ -83,7 +83,7 @@ def test_image_glob_selects_matching_files(tmp_path):
     source = open_source(str(tmp_path / "a_*.png"))
     assert isinstance(source, ImageFolderSource)
     assert [p.name for p in source.files] == ["a_1.png", "a_2.png"]
-    assert source.info == SourceInfo(fps=30.0, frame_count=2)
+    assert source.info == SourceInfo(fps=30.0, frame_count=2, stills=True)
 
 
 @pytest.mark.parametrize(
@@ -351,7 +351,7 @@ def test_every_source_declares_what_it_is(tmp_path):
         assert video.info == SourceInfo(
             fps=pytest.approx(25.0), frame_count=3, frame_count_estimated=True, video_path=tmp_path / "clip.mkv"
         )
-        assert image.info == SourceInfo(fps=5.0, frame_count=1)
+        assert image.info == SourceInfo(fps=5.0, frame_count=1, stills=True)
         assert live.info == SourceInfo(live=True, fps=50.0)
 
 
@@ -360,7 +360,7 @@ def test_open_source_reads_folders_globs_images_and_videos(tmp_path):
         cv2.imwrite(str(tmp_path / f"frame_{index}.png"), np.full((8, 8, 3), index, np.uint8))
     write_video(tmp_path / "clip.mkv", synthetic_images(2))
     with open_source(tmp_path, fps=12.0) as folder:
-        assert isinstance(folder, ImageFolderSource) and folder.info == SourceInfo(fps=12.0, frame_count=3)
+        assert isinstance(folder, ImageFolderSource) and folder.info == SourceInfo(fps=12.0, frame_count=3, stills=True)
     with open_source(tmp_path / "frame_1.png") as image:
         assert isinstance(image, ImageFolderSource) and image.info.frame_count == 1
     with open_source(str(tmp_path / "clip.mkv")) as video:

@@ -96,6 +96,21 @@ def test_an_approaching_marker_is_tracked_and_right_from_its_first_frame_offline
     assert max(_error(offline[i], truths[i], M0) for i in seen) < 10.0
 
 
+@pytest.mark.slow
+def test_a_fast_approach_whose_near_frames_look_blurred_is_tracked_offline():
+    """The approach in 90 frames: as the marker grows to fill the view, the whole-frame blur test (fine
+    against coarse detail, relative to its running typical value) flags every near frame, though each
+    decides the flip alone. Such a frame settles its own flip: offline >= 90 % tracked, none wrong (before:
+    42 %, the near end ambiguous)."""
+    scenario = Scenario("approach 90", 0.04, 0.5, "approach", far_m=4.0, tilt_deg=25, frames=90)
+    results, truths = _tracked(scenario.scene(CameraModel.default_synthetic()), 0.04)
+    offline = smooth(results, TrackerConfig())
+    seen = [i for i, r in enumerate(offline) if M0 in r.targets and r.targets[M0].measured]
+    tracked = [i for i in seen if offline[i].targets[M0].state is TrackState.TRACKED]
+    assert len(tracked) >= 0.9 * len(seen), (len(tracked), len(seen))
+    assert max(_error(offline[i], truths[i], M0) for i in tracked) < 10.0
+
+
 def _static(length_m: float, distance_m: float, azimuth_deg: float, frames: int, seed: int) -> list[FrameResult]:
     """The causal results of a still camera looking at one marker (sensor noise 2 grey levels)."""
     trajectory = Trajectory(

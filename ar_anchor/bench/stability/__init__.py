@@ -10,7 +10,13 @@ Scenarios
 ---------
 The 14 calm scenarios (a lone 3-12 cm marker, static or moving on smooth synthetic paths, 720p)
 are the grid the temporal filter was tuned on; a 15th, ``approach`` (a 4 cm marker the camera
-approaches from 4 m to 0.5 m), is ambiguous far away and decisive near (issue 20). The hand-held
+approaches from 4 m to 0.5 m), is ambiguous far away and decisive near (issue 20). Issue 32 ("tracked
+means right on every sequence", :func:`~.scenarios.discontinuity_scenarios`) adds scenes whose frames are not
+one smooth video: ``stills`` (45 unrelated photos of a lone 8 cm marker, turned -70..+70 deg in 10-deg
+steps about a vertical axis, at 0.5 m centred and at 0.3-1.5 m anywhere in the image, shuffled with a fixed
+seed, played at 30 fps: camera path ``Trajectory(kind="stills")``), ``cut`` (a lone 6 cm marker, a hand-held
+path cut at the middle frame to an unrelated one: ``Trajectory(kind="cut")``) and, in the full grid, the
+far fronto-parallel static scene rendered sharper (noise 1, blur 0.3 px, tilt 2 deg). The hand-held
 scenarios (``motion="handheld"``) look like a hand-held webcam: sway, tremor, quick turns, approach
 and retreat, motion blur integrated over the exposure, rolling shutter, lighting drift and steps, a
 hand crossing the markers, JPEG or H.264 compression, 5-60 fps, duplicated frames, lens distortion,
@@ -42,16 +48,22 @@ counts summed, longest stretch the maximum) and reported for the worst target:
 - *sheet disagreement* (scenarios with a sheet of markers): frames where two markers of the rigid
   sheet disagree in rotation by more than 10 deg (every marker of a flat sheet has the same true
   rotation), per pipeline.
+- *misfit rows* (issue 32, :func:`~.metrics.misfit_rows`; tracker and offline): measured rows (``tracked``
+  or ``ambiguous``, with this frame's solutions) whose output reprojects on that frame's own corners
+  (``TargetResult.reproj_px``) worse than :func:`ar_anchor.track.fit.fit_bound_px` of the frame's best
+  solution's error (``hypotheses[0].reproj_px``) and ``[pose] fit_margin_px`` (recorded per frame in
+  :class:`TargetSeries`: ``reproj_px``, ``fit_bound_px``); ``misfit_worst_px``: the largest excess.
 - jitter (static scenes), lag (moving), the tracker's states, as before.
 
 Acceptance (the ``pass`` column; ``ACCEPTANCE``): for every target the tracker's wrong-frame rate is
 at most the raw pipeline's + 0.2 points, no wrong tracked frame, no twitch, longest stretch <= 3,
-predicted median <= 3 deg and p95 <= 10 deg.
+predicted median <= 3 deg and p95 <= 10 deg, no misfit row (issue 32).
 
 Offline replay (``offline``: the same metrics as the tracker's, with ``interpolated_pct`` and a signed
 lag, negative when the output leads the truth): its acceptance (:func:`offline_acceptance`,
 ``OFFLINE_ACCEPTANCE``, issue 20) against the causal tracker: wrong-frame rate at most the causal's, no
-wrong tracked frame, static jitter at most the causal's, |lag| <= 0.5 frame on moving scenarios, fewer
+wrong tracked frame, no misfit row (issue 32), static jitter at most the causal's, |lag| <= 0.5 frame on
+moving scenarios, fewer
 ambiguous frames wherever the scenario decides at some point, none tracked where it is undecidable.
 
 Modules: :mod:`.scenarios` (what is rendered), :mod:`.run` (render and track one scenario),
@@ -72,12 +84,13 @@ from .metrics import (
     is_decisive,
     lag_frames,
     longest_stretch,
+    misfit_rows,
     predicted_error_stats,
     wrong_tracked,
 )
 from .report import acceptance_table, offline_table, stability_markdown, stability_table, write_stability_report
 from .run import ScenarioRun, TargetSeries, run_scenario
-from .scenarios import Scenario, handheld_scenarios, stability_scenarios
+from .scenarios import Scenario, handheld_scenarios, discontinuity_scenarios, stability_scenarios
 
 __all__ = [
     "ACCEPTANCE",
@@ -95,9 +108,11 @@ __all__ = [
     "evaluate",
     "handheld_scenarios",
     "is_decisive",
+    "discontinuity_scenarios",
     "fractional_lag",
     "lag_frames",
     "longest_stretch",
+    "misfit_rows",
     "offline_acceptance",
     "offline_table",
     "predicted_error_stats",

@@ -1,7 +1,7 @@
 """One tracked scenario scored: the raw pipeline's, the tracker's and the offline replay's metrics per
 target and pooled over the targets, the worst target, the rigid sheet's consistency, and the
 acceptances (``ACCEPTANCE``: the tracker against raw, issue 16; ``OFFLINE_ACCEPTANCE``: the offline
-replay against the causal tracker, issue 20)."""
+replay against the causal tracker, issue 20; both: no misfit row, issue 32)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from .metrics import (
     ambiguous_vs_raw,
     fractional_lag,
     longest_stretch,
+    misfit_rows,
     predicted_error_stats,
     rotation_errors,
     series_metrics,
@@ -39,6 +40,7 @@ ACCEPTANCE = {
     "longest_stretch": 3,
     "predicted_median_deg": 3.0,
     "predicted_p95_deg": 10.0,
+    "misfit_rows": 0,  # issue 32: measured rows whose output does not fit its own frame (metrics.misfit_rows)
 }
 
 
@@ -52,6 +54,7 @@ def _output_metrics(series: TargetSeries, moving: bool, states: tuple[str, ...],
     out.update(wrong_tracked(series.output, series.truth, series.state))
     out.update(predicted_error_stats(series.output, series.truth, series.state))
     out.update(ambiguous_vs_raw(series.output, series.raw, series.truth, series.state))
+    out.update(misfit_rows(series.state, series.reproj_px, series.fit_bound_px))
     out.update(_state_shares(series.state, states))
     first_output = next((i for i, s in enumerate(series.state) if s), None)
     first_tracked = next((i for i, s in enumerate(series.state) if s == "tracked"), None)
@@ -127,9 +130,15 @@ def _pooled_pipeline(
             }
         )
     rows = [m[pipeline] for m in per_target.values()]
-    for key in ("twitches", "decisive_wrong", "wrong_tracked", "ambiguous_wrong", "ambiguous_raw_wrong"):
+    for key in (
+        *("twitches", "decisive_wrong", "wrong_tracked", "ambiguous_wrong", "ambiguous_raw_wrong"),
+        *("fit_rows", "misfit_rows"),
+    ):
         if key in rows[0]:
             out[key] = int(sum(r.get(key, 0) for r in rows))
+    worst_misfits = [r["misfit_worst_px"] for r in rows if r.get("misfit_worst_px") is not None]
+    if "misfit_worst_px" in rows[0]:
+        out["misfit_worst_px"] = max(worst_misfits) if worst_misfits else None
     for key in ("longest_stretch", "ignored_run", "lag_frames", "lag_vs_raw_frames", "frames_to_commit"):
         values = [r[key] for r in rows if r.get(key) is not None]
         if values:
@@ -166,6 +175,7 @@ def _worst(per_target: dict[str, dict[str, Any]]) -> dict[str, Any]:
     pick("longest_stretch", lambda m: m["tracker"].get("longest_stretch"))
     pick("predicted_median_deg", lambda m: m["tracker"].get("predicted_median_deg"))
     pick("predicted_p95_deg", lambda m: m["tracker"].get("predicted_p95_deg"))
+    pick("misfit_rows", lambda m: m["tracker"].get("misfit_rows"))
     return worst
 
 
@@ -196,8 +206,9 @@ def acceptance(result: dict[str, Any]) -> dict[str, Any]:
     """The issue-16 acceptance on one evaluated scenario: ``{"pass": bool, "failed": [reasons]}``.
 
     Checked on every target; one reason per failed criterion, with the worst value, its target and
-    how many targets fail it. A metric without data (no predicted rows) passes. Also fails when ROI
-    tracking found fewer markers than full-frame detection on the same frames."""
+    how many targets fail it. A metric without data (no predicted rows) passes. Issue 32: no misfit row
+    (:func:`~.metrics.misfit_rows`: a measured output that does not fit its own frame's corners). Also
+    fails when ROI tracking found fewer markers than full-frame detection on the same frames."""
     targets = result.get("targets") or {"": {"raw": result["raw"], "tracker": result["tracker"]}}
     limits = ACCEPTANCE
     checks: list[tuple[str, Callable[[dict, dict], float | None], float, str]] = [
@@ -210,6 +221,7 @@ def acceptance(result: dict[str, Any]) -> dict[str, Any]:
          "predicted median {:.1f} deg"),
         ("predicted p95", lambda r, t: t.get("predicted_p95_deg"), limits["predicted_p95_deg"],
          "predicted p95 {:.1f} deg"),
+        ("misfit", lambda r, t: t.get("misfit_rows", 0), limits["misfit_rows"], "{:.0f} misfit rows"),
     ]  # fmt: skip
     failed = []
     for _, value_of, limit, text in checks:
@@ -242,6 +254,7 @@ OFFLINE_ACCEPTANCE = {
     "wrong_tracked": 0,
     "jitter_excess_deg": 1e-9,  # static: offline jitter <= causal + this
     "abs_lag_frames": 0.5,  # moving: |offline lag - the raw measurements' own| <= this (fractional frames)
+    "misfit_rows": 0,  # issue 32: measured rows whose output does not fit its own frame (metrics.misfit_rows)
 }
 
 # A criterion: (causal, offline) metrics of one scope -> (by how much it exceeds its limit, reason text)
@@ -275,7 +288,11 @@ def _offline_checks(moving: bool) -> list[_Check]:
         value = off["lag_vs_raw_frames"]
         return abs(value) - limits["abs_lag_frames"], f"offline lag {value:+.2f} frames against the raw measurements"
 
-    return [wrong, wrong_tracked, jitter, lag]
+    def misfit(trk: dict, off: dict) -> tuple[float, str]:
+        count = off.get("misfit_rows", 0)
+        return count - limits["misfit_rows"], f"{count} offline misfit rows"
+
+    return [wrong, wrong_tracked, jitter, lag, misfit]
 
 
 def offline_acceptance(result: dict[str, Any]) -> dict[str, Any]:
@@ -284,7 +301,9 @@ def offline_acceptance(result: dict[str, Any]) -> dict[str, Any]:
 
     Checked on the pooled numbers and on every target (``OFFLINE_ACCEPTANCE``): offline wrong-frame rate
     (``flipped_pct``; ``interpolated`` frames count) at most the causal tracker's, no offline wrong
-    ``tracked`` frame, static jitter at most the causal's, and on moving scenarios no lag: a whole-frame
+    ``tracked`` frame, no offline misfit row (issue 32, :func:`~.metrics.misfit_rows`: a measured output
+    that does not fit its own frame's corners), static jitter at most the causal's, and on moving
+    scenarios no lag: a whole-frame
     lag of 0 (:func:`~.metrics.lag_frames`, signed), or else the lag the offline replay adds, its
     fractional lag (:func:`~.metrics.fractional_lag`) less that of the raw per-frame measurements of the
     same target, within ±0.5 frame. (The fractional lag is meaningless on a flat error curve, an
@@ -299,7 +318,8 @@ def offline_acceptance(result: dict[str, Any]) -> dict[str, Any]:
       excess above the decision margin): that statistic calls "static 12cm 4m tilt20" decidable though
       neither pass ever commits there; and not the causal tracker's commitment alone: a 90-frame
       approach from 4 m is decided by the backward pass only (the causal tracker never commits), which
-      is what the offline replay is for;
+      is what the offline replay is for; unrelated stills (``motion="stills"``), each its own track
+      segment, whose frames no other frame may vouch for: no more ambiguous frames than causal;
     - where the scenario is undecidable (evaluate()'s ``decidable`` false: no amount of evidence can
       decide): no offline ``tracked`` frame (it stays ``ambiguous`` offline too).
 
@@ -324,7 +344,10 @@ def offline_acceptance(result: dict[str, Any]) -> dict[str, Any]:
             where.append(f"{failing} of {len(targets)} targets")
         failed.append(text + (f" ({', '.join(where)})" if where else ""))
     causal_ambiguous, offline_ambiguous = trk.get("ambiguous_frames", 0), offline.get("ambiguous_frames", 0)
-    if trk.get("tracked_frames", 0) or offline.get("tracked_frames", 0):
+    if result["scenario"]["motion"] == "stills":  # (every photo its own segment: no evidence from the others)
+        if offline_ambiguous > causal_ambiguous:
+            failed.append(f"offline ambiguous {offline_ambiguous} frames, more than causal {causal_ambiguous}")
+    elif trk.get("tracked_frames", 0) or offline.get("tracked_frames", 0):
         if offline_ambiguous > causal_ambiguous or (causal_ambiguous and offline_ambiguous >= causal_ambiguous):
             failed.append(f"offline ambiguous {offline_ambiguous} frames, not fewer than causal {causal_ambiguous}")
     if result.get("decidable") is False and offline.get("tracked_frames", 0):

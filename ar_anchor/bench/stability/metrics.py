@@ -26,6 +26,7 @@ __all__ = [
     "is_decisive",
     "lag_frames",
     "longest_stretch",
+    "misfit_rows",
     "predicted_error_stats",
     "rotation_errors",
     "series_metrics",
@@ -108,6 +109,32 @@ def predicted_error_stats(
         "predicted_median_deg": float(np.median(predicted)),
         "predicted_p95_deg": float(np.percentile(predicted, 95)),
     }
+
+
+MEASURED_STATES = ("tracked", "ambiguous")
+
+
+def misfit_rows(state: Sequence[str], reproj_px: Sequence[float], bound_px: Sequence[float]) -> dict[str, Any]:
+    """Issue 32: measured rows (``tracked`` or ``ambiguous`` with this frame's solutions; ``bound_px``
+    finite) whose output does not fit its own frame: its RMS reprojection error on the frame's corners
+    (``reproj_px``, ``TargetResult.reproj_px``) is above the bound (``bound_px``:
+    :func:`ar_anchor.track.fit.fit_bound_px` of the frame's best solution's error and ``[pose]
+    fit_margin_px``), or is not a number. ``misfit_rows``: how many; ``fit_rows``: the measured rows;
+    ``misfit_worst_px``: the largest excess over the bound (None without a misfit, or when it is not
+    finite)."""
+    rows = misfits = 0
+    worst: float | None = None
+    for st, error, bound in zip(state, reproj_px, bound_px):
+        if st not in MEASURED_STATES or not math.isfinite(bound):
+            continue
+        rows += 1
+        if error <= bound:  # False for NaN: an output whose error is unknown does not fit
+            continue
+        misfits += 1
+        excess = float(error - bound)
+        if math.isfinite(excess) and (worst is None or excess > worst):
+            worst = excess
+    return {"fit_rows": rows, "misfit_rows": misfits, "misfit_worst_px": worst}
 
 
 def ambiguous_vs_raw(

@@ -9,11 +9,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ...camera import CameraModel
-from ...config import TrackerConfig
+from ...config import PoseConfig, TrackerConfig
 from ...geometry import Pose
 from ...sources.synthetic import SyntheticSource
 from ...targets import TargetId
 from ...track.detection import Detector
+from ...track.fit import fit_bound_px
 from ...track.offline import smooth
 from ...track.tracker import Tracker
 from .metrics import is_decisive
@@ -32,9 +33,13 @@ class TargetSeries:
     state: list[str] = field(default_factory=list)  # "" when no output
     delta_px: list[float] = field(default_factory=list)  # worse - better IPPE reprojection error
     decisive: list[bool] = field(default_factory=list)  # the raw measurement is decisive (see is_decisive)
+    # issue 32: does a measured output fit its own frame? (NaN where the row is not measured with hypotheses)
+    reproj_px: list[float] = field(default_factory=list)  # the output's RMS error on this frame's corners
+    fit_bound_px: list[float] = field(default_factory=list)  # track.fit.fit_bound_px(best solution's, margin)
 
-    def append(self, target: Any, truth: Pose | None) -> None:
-        """Record one frame's ``TargetResult`` (or None) and truth."""
+    def append(self, target: Any, truth: Pose | None, fit_margin_px: float | None = None) -> None:
+        """Record one frame's ``TargetResult`` (or None) and truth. ``fit_margin_px``: ``[pose]
+        fit_margin_px`` of the tracker's config (default: the config default), for the fit bound."""
         self.truth.append(truth)
         self.raw.append(target.raw if target is not None else None)
         self.output.append(target.pose if target is not None else None)
@@ -42,6 +47,13 @@ class TargetSeries:
         hyps = tuple(target.hypotheses) if target is not None else ()
         self.delta_px.append(hyps[1].reproj_px - hyps[0].reproj_px if len(hyps) == 2 else math.nan)
         self.decisive.append(target is not None and target.raw is not None and is_decisive(hyps))
+        if target is not None and target.measured and hyps:
+            margin = PoseConfig().fit_margin_px if fit_margin_px is None else fit_margin_px
+            self.reproj_px.append(float(target.reproj_px))
+            self.fit_bound_px.append(fit_bound_px(float(hyps[0].reproj_px), margin))
+        else:
+            self.reproj_px.append(math.nan)
+            self.fit_bound_px.append(math.nan)
 
 
 @dataclass
@@ -94,6 +106,7 @@ def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel,
     source = SyntheticSource(scenario.scene(camera, config.detector.dictionary))
     tracker = Tracker(scenario.tracker_config(config), camera)
     full_frame = Detector(tracker.config.detector)  # what full-frame detection finds, for the ROI count
+    margin = tracker.config.pose.fit_margin_px
     names = [TargetId.marker(i) for i in scenario.marker_ids]
     run = ScenarioRun(scenario, {name: TargetSeries() for name in names})
     frames = iter(source)
@@ -111,7 +124,7 @@ def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel,
         run.track_ms.append(elapsed * 1e3)
         truth = frame.truth or {}
         for name, series in run.targets.items():
-            series.append(result.targets.get(name), truth.get(name))
+            series.append(result.targets.get(name), truth.get(name), margin)
         results.append(result)
         truths.append(truth)
         everywhere = {i for i in full_frame.detect(frame.image, camera).ids.tolist() if tracker.config.tracks_marker(i)}
@@ -121,7 +134,7 @@ def run_scenario(scenario: Scenario, config: TrackerConfig, camera: CameraModel,
         run.offline = {name: TargetSeries() for name in names}
         for result, truth in zip(smooth(results, tracker.config), truths):
             for name, series in run.offline.items():
-                series.append(result.targets.get(name), truth.get(name))
+                series.append(result.targets.get(name), truth.get(name), margin)
     # targets never in view have nothing to score
     run.targets = {name: s for name, s in run.targets.items() if any(t is not None for t in s.truth)} or run.targets
     run.offline = {name: s for name, s in run.offline.items() if name in run.targets}

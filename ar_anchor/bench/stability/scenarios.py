@@ -1,4 +1,5 @@
-"""The benchmark's synthetic clips: the calm grid and the hand-held webcam scenarios.
+"""The benchmark's synthetic clips: the calm grid, the unrelated-frames scenes (issue 32: a folder of
+stills, a video with a cut, a crisper far static scene) and the hand-held webcam scenarios.
 
 A :class:`Scenario` says what is rendered (markers, camera path, camera, image degradations) and how
 the tracker is configured to track it; :func:`stability_scenarios` is the grid ``ar-anchor bench
@@ -17,8 +18,11 @@ from ...camera import CameraModel
 from ...config import TrackerConfig
 from ...geometry import Pose
 from ...synthetic import Lighting, Occluder, PlacedMarker, SyntheticScene, Trajectory, marker_sheet, webcam_camera
+from ...synthetic.trajectory import turntable_stills
 
-__all__ = ["Scenario", "handheld_scenarios", "scenario_dict", "stability_scenarios"]
+__all__ = ["Scenario", "discontinuity_scenarios", "handheld_scenarios", "scenario_dict", "stability_scenarios"]
+
+STILL_STEP_DEG = 10.0  # motion="stills": the turns are -tilt_deg..+tilt_deg in steps of this
 
 
 @dataclass(frozen=True)
@@ -35,12 +39,20 @@ class Scenario:
     ``turn_every_s``, aim wander ``aim_m`` around ``aim_offset_m`` (an offset pushes the targets towards
     the image border). ``min_perimeter_rate`` overrides the detector's
     (far markers).
+
+    ``motion="stills"`` (issue 32): unrelated photos of the marker, one per frame
+    (:func:`~ar_anchor.synthetic.trajectory.turntable_stills` with ``seed``): turned -``tilt_deg``..
+    +``tilt_deg`` about a vertical axis in ``STILL_STEP_DEG`` steps, a first set centred at 0.5 m, the
+    others at ``distance_m``..``far_m`` and elsewhere in the image, shuffled; ``frames`` must be a whole
+    number of sets. ``motion="cut"``: a video with a cut at the middle frame: the hand-held path of this
+    scenario (no quick turns unless asked), then an unrelated one, ``cut_to`` = (distance m, far m, tilt
+    deg, seed) of the hand-held path after the cut.
     """
 
     name: str
     marker_m: float
     distance_m: float
-    motion: str = "static"  # static | wobble | orbit | fast | sweep | approach | handheld
+    motion: str = "static"  # static | wobble | orbit | fast | sweep | approach | handheld | stills | cut
     tilt_deg: float = 0.0
     noise: float = 2.0
     blur: float = 0.6
@@ -72,6 +84,7 @@ class Scenario:
     aim_m: float = 0.02
     aim_offset_m: tuple[float, float] = (0.0, 0.0)  # where the hand-held camera aims, off the targets' centre
     min_perimeter_rate: float | None = None
+    cut_to: tuple[float, float, float, int] = ()  # motion="cut": the second path (distance m, far m, tilt deg, seed)
 
     @property
     def moving(self) -> bool:
@@ -82,7 +95,8 @@ class Scenario:
         return tuple(range(self.sheet)) if self.sheet else (0,)
 
     def trajectory(self) -> Trajectory:
-        """The camera path for ``motion`` (static, wobble, orbit, fast, sweep, approach, handheld) at ``distance_m``."""
+        """The camera path for ``motion`` (static, wobble, orbit, fast, sweep, approach, handheld, stills, cut)
+        at ``distance_m``."""
         seconds = self.frames / 30.0
         if self.motion == "static":
             return Trajectory(
@@ -124,22 +138,47 @@ class Scenario:
                 cycles=1.0,
             )
         if self.motion == "handheld":
-            return Trajectory(
-                kind="handheld",
-                near_m=self.distance_m,
-                far_m=self.far_m or self.distance_m,
-                azimuth_deg=self.tilt_deg,
-                elevation_deg=0.6 * self.tilt_deg,
-                roll_deg=6.0,
-                tremor_deg=self.tremor_deg,
-                turn_peak_deg_s=self.turn_peak_deg_s,
-                turn_deg=self.turn_deg,
-                turn_every_s=self.turn_every_s,
-                aim_m=self.aim_m,
-                look_at=(*self.aim_offset_m, 0.0),
-                seed=self.seed,
+            return self._handheld(self.distance_m, self.far_m or self.distance_m, self.tilt_deg, self.seed)
+        if self.motion == "stills":
+            turns = tuple(
+                -self.tilt_deg + STILL_STEP_DEG * k for k in range(int(round(2 * self.tilt_deg / STILL_STEP_DEG)) + 1)
             )
+            if self.frames % len(turns):
+                raise ValueError(f"stills: frames ({self.frames}) must be a multiple of the {len(turns)} turns")
+            stills = turntable_stills(
+                self.seed, turns_deg=turns, near_m=self.distance_m, far_m=self.far_m or self.distance_m,
+                sets=self.frames // len(turns),
+            )  # fmt: skip
+            return Trajectory(kind="stills", stills=stills)
+        if self.motion == "cut":
+            if len(self.cut_to) != 4:
+                raise ValueError("cut: cut_to must be (distance m, far m, tilt deg, seed) of the path after the cut")
+            near, far, tilt, seed = self.cut_to
+            duration = max(self.frames - 1, 1) / self.fps  # the parts' u = 1: the clip's last frame, in seconds
+            first = self._handheld(self.distance_m, self.far_m or self.distance_m, self.tilt_deg, self.seed)
+            second = self._handheld(near, far, tilt, int(seed))
+            parts = tuple(dataclasses.replace(p, duration_s=duration) for p in (first, second))
+            middle = self.frames // 2  # the first frame after the cut
+            return Trajectory(kind="cut", parts=parts, cuts_u=((middle - 0.5) / max(self.frames - 1, 1),))
         raise ValueError(f"unknown motion {self.motion!r}")
+
+    def _handheld(self, near_m: float, far_m: float, tilt_deg: float, seed: int) -> Trajectory:
+        """The hand-held path with this scenario's tremor, turns and aim, from ``near_m`` to ``far_m``."""
+        return Trajectory(
+            kind="handheld",
+            near_m=near_m,
+            far_m=far_m,
+            azimuth_deg=tilt_deg,
+            elevation_deg=0.6 * tilt_deg,
+            roll_deg=6.0,
+            tremor_deg=self.tremor_deg,
+            turn_peak_deg_s=self.turn_peak_deg_s,
+            turn_deg=self.turn_deg,
+            turn_every_s=self.turn_every_s,
+            aim_m=self.aim_m,
+            look_at=(*self.aim_offset_m, 0.0),
+            seed=seed,
+        )
 
     def camera_model(self, default: CameraModel) -> CameraModel:
         """The scenario's camera: ``default`` unless it asks for a resolution (then a webcam-like one)."""
@@ -253,9 +292,28 @@ def handheld_scenarios(quick: bool = False) -> list[Scenario]:
     return [grid[i] for i in (0, 4, 6)] if quick else grid
 
 
+def discontinuity_scenarios(quick: bool = False) -> list[Scenario]:
+    """Issue 32, "tracked means right on every sequence": clips whose frames are unrelated, where a pose
+    carried over from an earlier frame is wrong: a folder of stills (a lone 8 cm marker turned -70..+70 deg
+    in 10-deg steps, at 0.3-1.5 m and anywhere in the image, shuffled: 45 photos played at 30 fps), a video
+    with a cut at the middle frame (two unrelated hand-held paths of a lone 6 cm marker: swaying up to 25
+    deg, then nearly fronto-parallel, where the frame alone hardly decides the flip and a pose carried
+    over from before the cut is tempting), and (full grid only) the far fronto-parallel static scene
+    rendered sharper (noise 1, blur 0.3 px, tilt 2 deg)."""
+    grid = [
+        Scenario("stills 8cm 0.3-1.5m turn ±70", 0.08, 0.3, "stills", far_m=1.5, tilt_deg=70, frames=45, seed=32),
+        Scenario("cut 6cm hh 0.5-0.7m tilt25 to 0.6-0.8m fronto", 0.06, 0.5, "cut", far_m=0.7, tilt_deg=25,
+                 frames=150, aim_offset_m=(0.1, 0.05), cut_to=(0.6, 0.8, 6.0, 33), seed=31),
+        Scenario("static 4cm 3m tilt2 noise1 blur0.3", 0.04, 3.0, "static", tilt_deg=2, noise=1.0, blur=0.3,
+                 frames=150),
+    ]  # fmt: skip
+    return grid[:2] if quick else grid  # quick: the same stills and cut (a shorter cut would cut elsewhere)
+
+
 def stability_scenarios(quick: bool = False) -> list[Scenario]:
     """The benchmark grid: the 15 calm scenarios (sizes 3-12 cm, 0.3-4 m, tilts down to
-    fronto-parallel, static and moving, noise, dropouts, an approach from 4 m), then the hand-held ones."""
+    fronto-parallel, static and moving, noise, dropouts, an approach from 4 m), the issue-32 scenes
+    (:func:`discontinuity_scenarios`: stills, a cut, a sharper far static scene), then the hand-held ones."""
     frames = 90 if quick else 150
     grid = [
         Scenario("static 12cm 0.5m tilt30", 0.12, 0.5, "static", tilt_deg=30, frames=frames),
@@ -283,4 +341,5 @@ def stability_scenarios(quick: bool = False) -> list[Scenario]:
         # replay decides from its first output frame (the 4 cm marker is first detected at about 3.2 m)
         Scenario("approach 4cm 4-0.5m tilt25", 0.04, 0.5, "approach", far_m=4.0, tilt_deg=25, frames=frames),
     ]
-    return (grid[::2] if quick else grid) + handheld_scenarios(quick)  # (quick keeps the approach: the last)
+    calm = grid[::2] if quick else grid  # (quick keeps the approach: the last)
+    return calm + discontinuity_scenarios(quick) + handheld_scenarios(quick)

@@ -22,7 +22,7 @@ from .linear import run_alone
 from .noise import CornerNoise
 from .smoothing import KalmanBatch, so3_exp, so3_log
 
-__all__ = ["EVIDENCE_DOUBTS", "TargetTrack", "TrackUpdate"]
+__all__ = ["EVIDENCE_DOUBTS", "SEGMENT_STARTS", "TargetTrack", "TrackUpdate"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,10 @@ class TrackUpdate:
 EVIDENCE_DOUBTS = frozenset(
     {"undecided", "decided_elsewhere", "evidence_against", "close_call", "unconfirmed", "raw_pick_elsewhere"}
 )
+
+# The events of a frame that starts a new track segment: nothing of the frames before it is carried on (the
+# offline replay's backward pass does not carry its evidence across either, nor are gaps bridged across).
+SEGMENT_STARTS = frozenset({"start", "jump", "refit"})
 
 
 class TargetTrack:
@@ -183,7 +187,11 @@ class TargetTrack:
             if len(hypotheses) == 2
             else math.inf
         )
-        if self.branches is None:
+        jump = None if self.branches is None else self._jump(measurement, gap_s)
+        if self.branches is None or jump is not None:
+            if jump is not None:  # a cut, an unrelated still, a jump no motion explains: a new track segment
+                events.append(TrackEvent("jump", jump))
+                self._forget_output()
             self.run_frames = 1
             return self._start(measurement, camera, events), True, None
         restart = self._is_gap(gap_s)
@@ -198,6 +206,57 @@ class TargetTrack:
         if branches.apart and branches.blind_s > self.config.crossing_blind_s and self.evidence.committed is not None:
             self.evidence.uncommit(branches.blind_s, events)
         return assigned, restart, gap_s
+
+    def _jump(self, measurement: MarkerPose | BoardPose, gap_s: float) -> str | None:
+        """Does this frame continue neither branch of the track (a cut, an unrelated still, a jump larger
+        than the motion model allows)? Then it says why, and the track starts a new segment from this frame:
+        no flip evidence, smoothing or held pose is carried across. Neither of the frame's solutions is
+        within ``reset_angle_deg`` plus ``max_angular_rate_deg_s`` over the time since the last measurement
+        (at most ``restart_gap_s`` of it: beyond that the motion model knows nothing, and a target seen again
+        must look like it did) of either branch's last measured orientation, or the position moved more than
+        :data:`_JUMP_SHARE` of the distance plus :data:`_JUMP_SPEED_M_S` over that time."""
+        assert self.branches is not None
+        cfg = self.config
+        span = min(gap_s, cfg.restart_gap_s) if math.isfinite(gap_s) else cfg.restart_gap_s
+        lasts = [branch.last for branch in self.branches.branches if branch is not None]
+        solutions = [h.pose for h in measurement.hypotheses]
+        turn = min(angle_between_deg(last, pose.rotation) for last in lasts for pose in solutions)
+        allowed_deg = cfg.reset_angle_deg + cfg.max_angular_rate_deg_s * span
+        if turn > allowed_deg:
+            return (
+                f"turned {turn:.0f} deg from both solutions of the track in {gap_s:.3g} s (the motion model allows "
+                f"{allowed_deg:.0f}): a new track segment"
+            )
+        before = self.branches.translation_filter.translation
+        shift = min(vector_norm(pose.tvec - before) for pose in solutions)
+        allowed_m = _JUMP_SHARE * vector_norm(before) + _JUMP_SPEED_M_S * span
+        if shift > allowed_m:
+            return (
+                f"moved {shift * 100:.1f} cm in {gap_s:.3g} s (the motion model allows {allowed_m * 100:.1f}): "
+                "a new track segment"
+            )
+        return None
+
+    def _forget_output(self) -> None:
+        """Forget what the last segment published and how it moved (a new segment starts as a new track)."""
+        self._held_spike = self._was_tracked = self._was_still = self._halfway = False
+        self._output = None
+        self._velocity = (np.zeros(3), np.zeros(3))
+        self._stillness = _Stillness(self.config)
+        self._glide = np.zeros(3)
+
+    def restart_from(
+        self, measurement: MarkerPose | BoardPose, timestamp_ns: int, camera: CameraModel, *, blurred: bool = False
+    ) -> tuple[TrackEvent, ...]:
+        """Start a new segment from this frame, whose published output is its own best solution (the output
+        did not fit its frame: :mod:`ar_anchor.track.fit`): nothing of the track's past is carried on. Returns
+        the events (a ``start``)."""
+        self.branches = None
+        self.measured_ns = None
+        self._forget_output()
+        update = self.update(measurement, timestamp_ns, camera, blurred=blurred)
+        self._output = measurement.best.pose
+        return update.events if update is not None else ()
 
     def _is_gap(self, gap_s: float) -> bool:
         """Were frames missed for longer than ``restart_gap_s``? (At 5 fps every frame is 0.2 s after the
@@ -414,6 +473,13 @@ class TargetTrack:
             self.run_frames,
             doubts,
         )
+
+
+# A frame whose position moved more than this share of the distance, plus this speed over the time since the
+# last measurement (at most restart_gap_s of it), from the track's: a jump (a hand-held webcam at 30 fps moves
+# a marker at 0.35 m by about 3 cm a frame at 1 m/s).
+_JUMP_SHARE = 0.3
+_JUMP_SPEED_M_S = 3.0
 
 
 class _Stillness:
