@@ -178,8 +178,11 @@ def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate], co
         b_choice = -1 if back is None else _chosen(hypotheses, _branch_pose(back.hypotheses, back.branch, back.pose))
         state, choice = _flip(result.blurred, forward, f_choice, back, b_choice, alone)
         if state is TrackState.TRACKED:  # both passes' smoothed poses on the chosen solution, weighted
-            on_choice = [(p.pose, p.run_frames) for p, c in ((forward, f_choice), (back, b_choice)) if c == choice]
-            pose = _mean_pose(on_choice)  # type: ignore[union-attr]
+            passes = ((forward, f_choice), (back, b_choice))
+            on_choice = [(p.pose, p.run_frames) for p, c in passes if c == choice and p is not None]
+            # (a pass whose own pose is in doubt, a spike held back, a glide, is left out where the other is not)
+            sound = [(p.pose, p.run_frames) for p, c in passes if c == choice and p and _pose_sound(p, c, alone)]
+            pose = _mean_pose(sound or on_choice)
         else:  # undecided: the live filter's output as it is (halfway between the solutions when it holds both)
             pose = forward.pose if forward is not None else back.pose if back is not None else hypotheses[choice]
         names.append(name)
@@ -189,6 +192,17 @@ def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate], co
         causal.append(f_choice)
     array = np.array(poses, np.float64).reshape(-1, 6)
     return _Decided(tuple(names), tuple(states), array, tuple(choices), tuple(causal), tuple(starts))
+
+
+def _doubts(p: TargetResult | TrackUpdate, choice: int, alone: bool) -> set[str]:
+    """A pass's doubts about the frame, where it stands on solution ``choice``: motion blur is none on the
+    frame's lower-error solution when the frame alone decides the flip (``alone``; see :func:`_flip`)."""
+    return set(p.doubts) - {"blurred"} if alone and choice == 0 else set(p.doubts)
+
+
+def _pose_sound(p: TargetResult | TrackUpdate, choice: int, alone: bool) -> bool:
+    """Does the pass doubt nothing about the frame's pose itself (only, at most, which solution is right)?"""
+    return EVIDENCE_DOUBTS.issuperset(_doubts(p, choice, alone))
 
 
 def _flip(
@@ -216,18 +230,16 @@ def _flip(
     running typical value, which a slow change of view, a marker growing to fill the image, can leave
     behind for good: on an approach every near frame, each decisive, was ``blurred``.)"""
 
-    def doubts(p: TargetResult | TrackUpdate, c: int) -> set[str]:
-        return set(p.doubts) - {"blurred"} if alone and c == 0 else set(p.doubts)
 
     def sure(p: TargetResult | TrackUpdate | None, c: int) -> bool:
-        return p is not None and (p.state is TrackState.TRACKED or bool(p.doubts) and not doubts(p, c))
+        return p is not None and (p.state is TrackState.TRACKED or bool(p.doubts) and not _doubts(p, c, alone))
 
     f_sure, b_sure = sure(forward, f_choice), sure(back, b_choice)
     if f_sure:
         return (TrackState.TRACKED if not b_sure or b_choice == f_choice else TrackState.AMBIGUOUS), f_choice
     choice = f_choice if f_choice >= 0 else max(b_choice, 0)
     pose_doubted = (blurred and not (alone and choice == 0)) or any(
-        not EVIDENCE_DOUBTS.issuperset(doubts(p, c)) for p, c in ((forward, f_choice), (back, b_choice)) if p is not None
+        not _pose_sound(p, c, alone) for p, c in ((forward, f_choice), (back, b_choice)) if p is not None
     )
     if pose_doubted:
         return TrackState.AMBIGUOUS, choice

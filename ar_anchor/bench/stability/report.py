@@ -235,10 +235,10 @@ def stability_markdown(results: list[dict[str, Any]], meta: dict[str, Any]) -> s
         "0.6 px. Hand-held scenarios (`hh ...`): webcam-like cameras (640x480 or 720p), the camera's own frame rate "
         "and clip length, motion blur over the exposure, rolling shutter, compression, lighting drift, tremor and "
         "quick turns (see `ar_anchor/bench/stability/scenarios.py`); `sheet6` is a rigid sheet of six markers, each "
-        "scored on its own truth and pooled. Issue 32 (frames that are not a smooth video): `stills ...`, 45 "
+        "scored on its own truth and pooled. Frames that are not a smooth video: `stills ...`, 45 "
         "unrelated photos of a lone marker (turned -70..+70 deg, 0.3-1.5 m, anywhere in the image, shuffled) "
         "played at 30 fps; `cut ...`, a hand-held clip cut at its middle frame to an unrelated one; `static 4cm "
-        "3m tilt2 noise1 blur0.3`, the far fronto-parallel scene rendered sharper.",
+        "3m tilt-3 noise1`, the far, nearly fronto-parallel scene with less sensor noise, turned the other way.",
         "",
         f"## Acceptance ({meta['passed']} of {meta['scenarios']} scenarios pass)",
         "",

@@ -66,6 +66,7 @@ class FlipEvidence:
     sustained evidence or on a run of contradicting frames."""
 
     _RECENT_S = 0.3  # the best guess of an undecided target leans on this much recent evidence
+    _GUESS_Z = 2.0  # ... else on the whole window's (when a move would snap: its mean this many standard errors from 0)
 
     def __init__(self, config: FilterConfig, noise: CornerNoise) -> None:
         self.config = config
@@ -122,14 +123,21 @@ class FlipEvidence:
         return decided
 
     def choose(
-        self, assigned: list[PoseHypothesis | None], decided: int | None, doubtful: bool, now_ns: int, current: int
+        self,
+        assigned: list[PoseHypothesis | None],
+        decided: int | None,
+        doubtful: bool,
+        now_ns: int,
+        current: int,
+        snaps: bool = False,
     ) -> int:
         """The branch to output this frame (``current``: the last frame's): the committed one, or the frame's
         lower-error solution while a contradicting run is open (from its second frame, or a decisive one),
-        the assignment is ``doubtful`` or a re-acquisition unconfirmed; an undecided target's best guess.
+        the assignment is ``doubtful`` or a re-acquisition unconfirmed; an undecided target's best guess
+        (``snaps``: a move to the other branch would be shown at once, too far to glide: only on evidence).
         The only solution of a frame (the other failed validation) is always shown."""
         if self.committed is None:
-            target = self._best_guess(decided, now_ns, current)
+            target = self._best_guess(decided, now_ns, current, snaps)
         elif (self.run >= 2 or (self.run and decided is not None) or doubtful or self.unconfirmed) and (
             None not in assigned
         ):
@@ -207,6 +215,10 @@ class FlipEvidence:
         self.against = 0
         self.run = 0
 
+    def leans(self, assigned: list[PoseHypothesis | None]) -> int | None:
+        """The branch this frame alone leans to (see :meth:`_verdict`), None when it does not."""
+        return self._verdict(assigned)[1]
+
     def _verdict(self, assigned: list[PoseHypothesis | None]) -> tuple[int | None, int | None]:
         """What this frame alone says: the branch it vouches for (the only solution, or the one the other
         reprojects ``decisive_ratio`` times and ``decisive_sigmas`` corner-noise standard deviations, at
@@ -222,11 +234,14 @@ class FlipEvidence:
         lean = low if worse - better > cfg.decide_margin_px * self._margin_scale() and worse >= 2.0 * better else None
         return strong, lean
 
-    def _best_guess(self, decided: int | None, now_ns: int, current: int) -> int:
+    def _best_guess(self, decided: int | None, now_ns: int, current: int, snaps: bool = False) -> int:
         """While undecided: this frame's decisive solution if there is one, else the branch the recent
         evidence leans to (by more than half the decision margin), else the branch the whole window's
-        evidence favours however slightly (on far, undecidable markers the per-frame pick is right more
-        often than not, and the window's mean more often still), else the current output branch."""
+        evidence favours (on far, undecidable markers the per-frame pick is right more often than not, and
+        the window's mean more often still), else the current output branch. Where a move would snap
+        (``snaps``: the two solutions too far apart to glide), the window's mean must be ``_GUESS_Z``
+        standard errors from 0: the difference of two frames' noise does not make an undecidable static
+        marker twitch from its first frame's branch to the other."""
         self.leaning = True
         if decided is not None:
             return decided
@@ -236,10 +251,9 @@ class FlipEvidence:
             if abs(mean) > 0.5 * self.config.decide_margin_px * self._margin_scale():
                 return 0 if mean > 0 else 1
         self.leaning = False
-        if self.values:  # too little to decide on is still more than one frame's pick
-            mean = float(np.mean([v for _, v in self.values]))
-            if mean != 0.0:
-                return 0 if mean > 0 else 1
+        lean = self.bound(0.0, self._GUESS_Z if snaps else 0.0)
+        if lean != 0.0:
+            return 0 if lean > 0 else 1
         return current
 
     def _add(self, assigned: list[PoseHypothesis | None], timestamp_ns: int) -> None:

@@ -129,7 +129,11 @@ class TargetTrack:
             yield from self.branches.update_steps(assigned, measurement, camera, gap_s, restart_frame, batch)
         doubtful = self.branches.doubtful
         decided = self.evidence.judge(assigned, timestamp_ns, doubtful, self.frames, events)
-        target = self.evidence.choose(assigned, decided, doubtful, timestamp_ns, self.output_branch)
+        # which solution is which is unknown this frame, by motion or by tilt: the frame's own pick is shown,
+        # where the frame leans (where it does not either, the committed branch goes on)
+        unsure = (doubtful or self.branches.unclear) and self.evidence.leans(assigned) is not None
+        snaps = self._separation_deg > 3.0 * self.config.glide_step_deg  # (a move too far to glide: see _glided)
+        target = self.evidence.choose(assigned, decided, unsure, timestamp_ns, self.output_branch, snaps)
         moved_branch = self._move_output(target, events)
         halfway = self._halfway
         pose, covariance = self._measured_output(assigned, camera)
