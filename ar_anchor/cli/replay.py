@@ -95,9 +95,6 @@ def _replay_camera(args: argparse.Namespace) -> Path:
     return beside
 
 
-FRAMES_CSV = "frames.csv"
-
-
 def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
     """Are the source's frames independent stills (an image folder or glob, without ``--sequence`` or
     ``--fps``)? Says which was assumed, in one line (unless ``-q``; summary.json's ``decided_with`` says it
@@ -150,7 +147,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     """``ar-anchor replay SOURCE``: track a video file or images and record the run; the exit code."""
     from ..camera import CameraModel
     from ..run.loop import OfflineReplay, run_session
-    from ..run.paths import claim_out_dir, config_inputs, run_output_paths, source_inputs
+    from ..run.paths import FRAMES_CSV, claim_out_dir, config_inputs, run_output_paths, source_inputs
     from ..sources import open_source
     from ..tools.export.run import camera_summary, clear_previous_exports
     from ..track.tracker import Tracker

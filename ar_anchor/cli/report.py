@@ -74,6 +74,7 @@ def finish(args: argparse.Namespace, outputs: Any) -> int:
     if not args.quiet:
         print(format_summary(outputs.summary))
     files = "poses.csv, summary.json, recording.rrd" + (", raw.mkv" if outputs.raw_video else "")
+    files += ", frames.csv" if (outputs.out_dir / "frames.csv").is_file() else ""  # (a replay of images)
     print(f"outputs: {printable(outputs.out_dir)}/ ({files})")
     video = outputs.summary.get("video_out")
     if video:

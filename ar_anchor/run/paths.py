@@ -31,6 +31,7 @@ from ..sources.files import IMAGE_EXTENSIONS
 from .outputs import prepare_out_dir
 
 __all__ = [
+    "FRAMES_CSV",
     "LOCK_NAME",
     "OutDirLock",
     "Named",
@@ -50,6 +51,7 @@ Named = tuple[str, Path]  # (what the user calls it: "--video-out", "SOURCE", ..
 LOCK_NAME = ".ar-anchor.lock"
 # the files a run writes into --out (recording.partN.rrd and the annotated video are matched apart)
 RUN_FILES = ("poses.csv", "summary.json", "summary.json.tmp", "recording.rrd", "raw.mkv", "raw.mkv.timestamps.csv")
+FRAMES_CSV = "frames.csv"  # a replay of images: which file each frame is (cleared with the run's other files)
 _PART = re.compile(r"recording\.part[0-9]+\.rrd")
 
 
@@ -271,7 +273,7 @@ def clear_previous_run(out_dir: Path, keep: Sequence[Named] = ()) -> list[str]:
     if not _previous_run_here(out_dir):
         return []
     kept = {_identity(path)[0] for _, path in keep}
-    names = [name for name in RUN_FILES if name != "summary.json"]
+    names = [name for name in (*RUN_FILES, FRAMES_CSV) if name != "summary.json"]
     names += [p.name for p in out_dir.iterdir() if _PART.fullmatch(p.name)]
     names += _previous_video(out_dir)
     removed = []

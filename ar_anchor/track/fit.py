@@ -39,9 +39,7 @@ def fit_bound_px(raw_px: float, margin_px: float) -> float:
     return raw_px + margin_px
 
 
-def misfit_px(
-    pose: Pose, measurement: MarkerPose | BoardPose, camera: CameraModel, margin_px: float
-) -> float | None:
+def misfit_px(pose: Pose, measurement: MarkerPose | BoardPose, camera: CameraModel, margin_px: float) -> float | None:
     """``pose``'s RMS reprojection error on ``measurement``'s points when it exceeds the bound
     (:func:`fit_bound_px` of the measurement's best solution), else None (it fits). A pose that cannot
     be projected (behind the camera, not finite) does not fit (its error is then ``inf``)."""

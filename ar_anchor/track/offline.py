@@ -118,9 +118,11 @@ def decide(
             updates = update_tracks(
                 tracks, result.measurements, end_ns - result.timestamp_ns, result.camera, result.blurred, config
             )
-            decided[position] = _decide_frame(result, {k: u for k, u in updates.items() if u is not None}, config)
-            for name in decided[position].names:  # (a new segment of the live track: none of its past carried)
-                if decided[position].segment_starts[decided[position].names.index(name)]:
+            answer = decided[position] = _decide_frame(
+                result, {k: u for k, u in updates.items() if u is not None}, config
+            )
+            for name, starts in zip(answer.names, answer.segment_starts):
+                if starts:  # a new segment of the live track: the backward pass carries none of its past either
                     tracks.pop(name, None)
         if progress is not None:
             progress(done, count)
@@ -183,8 +185,10 @@ def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate], co
             # (a pass whose own pose is in doubt, a spike held back, a glide, is left out where the other is not)
             sound = [(p.pose, p.run_frames) for p, c in passes if c == choice and p and _pose_sound(p, c, alone)]
             pose = _mean_pose(sound or on_choice)
-        else:  # undecided: the live filter's output as it is (halfway between the solutions when it holds both)
-            pose = forward.pose if forward is not None else back.pose if back is not None else hypotheses[choice]
+        else:  # undecided: the output of the pass on that solution as it is (the live filter's first: halfway
+            # between the solutions when it holds both)
+            on = [p for p, c in ((forward, f_choice), (back, b_choice)) if p is not None and c == choice]
+            pose = on[0].pose if on else forward.pose if forward is not None else hypotheses[choice]
         names.append(name)
         states.append(state)
         poses.append(np.concatenate([pose.rvec, pose.tvec]))
@@ -222,14 +226,14 @@ def _flip(
       itself (blur, an outlier, a spike, a glide);
     - neither vouching, both committed to the same solution with only such doubts: the evidence before
       and after the frame agree, the frame's own close call cannot overturn them: ``tracked``;
-    - else ``ambiguous`` on the forward pass's solution (the live filter's).
+    - else ``ambiguous`` on the forward pass's solution (the live filter's), or, where the passes stand on
+      different solutions and only the backward pass doubts nothing of the frame's pose, on its solution.
 
     Motion blur (``blurred``) is no doubt on a pass standing on the frame's lower-error solution when the
     frame alone decides the flip (``alone``: :func:`~.filtering.decided_alone`): the frame settles its own
     flip, as a later frame settles an earlier one's. (The whole-frame blur test compares sharpness with its
     running typical value, which a slow change of view, a marker growing to fill the image, can leave
     behind for good: on an approach every near frame, each decisive, was ``blurred``.)"""
-
 
     def sure(p: TargetResult | TrackUpdate | None, c: int) -> bool:
         return p is not None and (p.state is TrackState.TRACKED or bool(p.doubts) and not _doubts(p, c, alone))
@@ -238,6 +242,9 @@ def _flip(
     if f_sure:
         return (TrackState.TRACKED if not b_sure or b_choice == f_choice else TrackState.AMBIGUOUS), f_choice
     choice = f_choice if f_choice >= 0 else max(b_choice, 0)
+    if forward is not None and back is not None and f_choice != b_choice:
+        if not _pose_sound(forward, f_choice, alone) and _pose_sound(back, b_choice, alone):
+            choice = b_choice  # the passes disagree, neither sure: the one that doubts nothing of the frame's pose
     pose_doubted = (blurred and not (alone and choice == 0)) or any(
         not _pose_sound(p, c, alone) for p, c in ((forward, f_choice), (back, b_choice)) if p is not None
     )

@@ -27,6 +27,7 @@ from ..sources.base import Frame
 from ..targets import TargetId, TrackState
 from .detection import FAST_MIN_SIDE_PX, Detector, MarkerDetections, mean_side, plan_regions
 from .filtering import (
+    SEGMENT_STARTS,
     KalmanBatch,
     TargetTrack,
     TrackEvent,
@@ -412,13 +413,14 @@ class Tracker:
                 )  # fmt: skip
         t2 = time.perf_counter()
         if self.config.filter.enabled:
-            targets = self._filter(measured, frame.timestamp_ns, camera, blurred)
+            targets = self._filter(measured, frame.timestamp_ns, camera, blurred, frame.index)
         else:
             targets = {name: self._raw_result(name, measured[name], camera) for name in TargetId.ordered(measured)}
         if self.groups is not None:
-            targets = self._settle_groups(targets, measured, layouts, events, camera)
+            targets = self._settle_groups(targets, measured, layouts, events, camera, frame.index)
         if self.config.filter.enabled:  # (without it every output is the frame's own best solution)
-            targets = self._fit_to_frame(targets, measured, frame.timestamp_ns, camera, blurred)
+            targets = self._fit_to_frame(targets, measured, frame.timestamp_ns, camera, blurred, frame.index)
+            targets = self._after_a_cut(targets, frame.index)
         t3 = time.perf_counter()
         latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
         return FrameResult(
@@ -517,6 +519,7 @@ class Tracker:
         layouts: dict[TargetId, GroupLayout],
         events: dict[TargetId, list[str]],
         camera: CameraModel,
+        index: int = -1,
     ) -> dict[TargetId, TargetResult]:
         """After the filter: members of a tracked group take its pose (:func:`members_from_groups`); the
         groups count agreements (members leave, groups dissolve: a dissolved group's track ends); every
@@ -529,7 +532,7 @@ class Tracker:
         self._end_group_tracks()
         for name, messages in events.items():
             for message in messages:
-                log.info("%s: %s", name, message)
+                log.info("frame %d: %s: %s", index, name, message)
             if name in targets:
                 extra = tuple(TrackEvent("group", message) for message in messages)
                 targets[name] = dataclasses.replace(targets[name], events=(*targets[name].events, *extra))
@@ -542,6 +545,7 @@ class Tracker:
         timestamp_ns: int,
         camera: CameraModel,
         blurred: bool,
+        index: int = -1,
     ) -> dict[TargetId, TargetResult]:
         """Every measured output checked against its own frame (:func:`~.fit.refit`): one that misses the
         frame's corners is moved just enough to fit (a spike held back, a lag) or, held over a cut or on the
@@ -557,7 +561,7 @@ class Tracker:
                 continue
             assert solved is not None
             replaced, restart = fitted
-            log.info("%s: %s", name, replaced.events[-1].message)
+            log.info("frame %d: %s: %s", index, name, replaced.events[-1].message)
             track = self.tracks.get(name)
             if restart and track is not None:
                 started = track.restart_from(solved, timestamp_ns, camera, blurred=blurred)
@@ -565,15 +569,38 @@ class Tracker:
             targets[name] = replaced
         return targets
 
+    def _after_a_cut(self, targets: dict[TargetId, TargetResult], index: int) -> dict[TargetId, TargetResult]:
+        """A cut (every target measured this frame whose track went on from earlier frames jumped: see
+        :meth:`~.filtering.TargetTrack.update_steps`, event ``jump``; at least one): the tracks of the targets
+        not seen in it end too, and none is predicted: their poses belong to the scene before the cut."""
+        measured = [target for target in targets.values() if target.measured]
+        jumped = [t for t in measured if any(event.kind == "jump" for event in t.events)]
+        went_on = [t for t in measured if not any(event.kind in SEGMENT_STARTS for event in t.events)]
+        if not jumped or went_on:
+            return targets
+        ended = sorted(name for name in self.tracks if name not in targets or not targets[name].measured)
+        for name in ended:
+            del self.tracks[name]
+        if ended:
+            log.info(
+                "frame %d: a cut (every target seen jumped): the tracks of %s end", index, ", ".join(map(str, ended))
+            )
+        return {name: target for name, target in targets.items() if target.measured}
+
     def _filter(
-        self, measured: dict[TargetId, MarkerPose | BoardPose], timestamp_ns: int, camera: CameraModel, blurred: bool
+        self,
+        measured: dict[TargetId, MarkerPose | BoardPose],
+        timestamp_ns: int,
+        camera: CameraModel,
+        blurred: bool,
+        index: int = -1,
     ) -> dict[TargetId, TargetResult]:
         """Every track's update (:func:`update_tracks`), as each target's :class:`TargetResult`."""
         targets: dict[TargetId, TargetResult] = {}
         updates = update_tracks(self.tracks, measured, timestamp_ns, camera, blurred, self.config.filter)
         for name, update in updates.items():
             for event in update.events if update is not None else ():
-                log.info("%s: %s", name, event.message)
+                log.info("frame %d: %s: %s", index, name, event.message)
             if update is None:  # nothing to publish: a gap too long to predict through, or lost for good
                 continue
             solved = measured.get(name)

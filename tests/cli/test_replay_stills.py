@@ -44,10 +44,11 @@ def photos(tmp_path_factory) -> Path:
 
 def _replay(photos: Path, name: str, *options: str, quiet: bool = True):
     out = photos / name
+    source, camera = str(photos / "shots"), str(photos / "cam.yml")
+    quiet_flag = ["-q"] if quiet else []
     result = run_main(
-        [*(["-q"] if quiet else []), "replay", str(photos / "shots"), "--camera", str(photos / "cam.yml"), "--marker-length", "0.06",
-         "--out", str(out), *options]
-    )  # fmt: skip
+        [*quiet_flag, "replay", source, "--camera", camera, "--marker-length", "0.06", "--out", str(out), *options]
+    )
     assert_clean_exit(result, {0})
     with open(out / "poses.csv", newline="") as file:
         rows = [row for row in csv.DictReader(file)]
@@ -80,6 +81,25 @@ def test_frames_csv_traces_each_row_to_its_file(photos: Path) -> None:
     assert [Path(frames[i]["file"]).name for i in range(len(TURNS))] == [f"turn_{i}.png" for i in range(len(TURNS))]
     for row in rows:  # every poses.csv row names a frame of frames.csv, at the same time
         assert float(frames[int(row["frame"])]["timestamp_s"]) == pytest.approx(float(row["timestamp_s"]))
+
+
+def test_a_later_video_replay_into_the_same_folder_leaves_no_stale_frames_csv(photos: Path, tmp_path: Path) -> None:
+    """frames.csv belongs to its run: a video replayed into the same --out removes it with the other files."""
+    _, out, _ = _replay(photos, "reused")
+    assert (out / "frames.csv").is_file()
+    images = [cv2.imread(str(path)) for path in sorted((photos / "shots").iterdir())]
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(
+        str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (images[0].shape[1], images[0].shape[0])
+    )
+    for image in images:
+        writer.write(image)
+    writer.release()
+    result = run_main(
+        ["-q", "replay", str(video), "--camera", str(photos / "cam.yml"), "--marker-length", "0.06", "--out", str(out)]
+    )
+    assert_clean_exit(result, {0})
+    assert not (out / "frames.csv").exists()
 
 
 @pytest.mark.parametrize("option", [("--sequence",), ("--fps", "10")])

@@ -84,7 +84,7 @@ def test_the_output_holds_one_branch_without_a_twitch() -> None:
     wrong_output = sum(_wrong(target.pose, truth) for target, truth in outputs)
     wrong_raw = sum(_wrong(target.raw, truth) for target, truth in outputs)
     assert wrong_output <= wrong_raw
-    assert not any(
-        target.state.value == "tracked" and _wrong(target.pose, truth) for target, truth in outputs
-    ), "a wrong tracked frame"
+    assert not any(target.state.value == "tracked" and _wrong(target.pose, truth) for target, truth in outputs), (
+        "a wrong tracked frame"
+    )
     assert np.isfinite([p.tvec for p in poses]).all()

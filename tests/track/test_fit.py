@@ -45,7 +45,8 @@ def _one_stream(*parts: list[Frame]) -> list[Frame]:
     """The parts' frames as one stream at 30 fps (a cut between parts, or unrelated photos)."""
     frames = [frame for part in parts for frame in part]
     return [
-        Frame(frame.image, index, int(round(index * 1e9 / 30.0)), truth=frame.truth) for index, frame in enumerate(frames)
+        Frame(frame.image, index, int(round(index * 1e9 / 30.0)), truth=frame.truth)
+        for index, frame in enumerate(frames)
     ]
 
 
@@ -59,7 +60,9 @@ def _static(distance_m: float, azimuth_deg: float, elevation_deg: float, roll_de
 def turntable() -> list[Frame]:
     """15 photos of one marker at 0.5 m, turned from -70 to +70 deg in 10-deg steps, one photo each, played
     as a 30-fps sequence (what a user reported of a folder of real stills: held-over poses 20 px off)."""
-    return _one_stream(*(_view(_static(0.5, float(turn), 0.0, 0.0), 1, seed) for seed, turn in enumerate(range(-70, 71, 10))))
+    return _one_stream(
+        *(_view(_static(0.5, float(turn), 0.0, 0.0), 1, seed) for seed, turn in enumerate(range(-70, 71, 10)))
+    )
 
 
 @functools.cache
@@ -192,7 +195,9 @@ def test_an_output_a_little_off_is_pulled_to_fit_without_a_restart() -> None:
     assert not restart and pulled.events[-1].kind == "fitted" and pulled.state is TrackState.TRACKED
     assert misfit_px(pulled.pose, measurement, CAMERA, MARGIN) is None
     assert pulled.reproj_px == pytest.approx(fit_bound_px(measurement.best.reproj_px, MARGIN), abs=0.01)
-    assert angle_between_deg(pulled.pose.rotation, tilted.rotation) < angle_between_deg(own.pose.rotation, tilted.rotation)
+    assert angle_between_deg(pulled.pose.rotation, tilted.rotation) < angle_between_deg(
+        own.pose.rotation, tilted.rotation
+    )
 
 
 def test_stills_tracker_is_the_per_frame_pipeline() -> None:
@@ -208,3 +213,29 @@ def test_stills_tracker_is_the_per_frame_pipeline() -> None:
             assert target.state is alone.targets[name].state
             assert np.allclose(target.pose.rvec, alone.targets[name].pose.rvec)
             assert np.allclose(target.pose.tvec, alone.targets[name].pose.tvec)
+
+
+def test_at_a_cut_the_targets_not_seen_are_not_predicted() -> None:
+    """A cut from a still view of two markers to another view where only one is seen: that one jumps, so
+    the frame is a cut, and the other's pose (of the scene before) is not predicted into the new scene."""
+    from ar_anchor.synthetic.scene import marker_sheet
+
+    markers, _ = marker_sheet((0, 1), length_m=0.06, cols=2)
+    before = SyntheticScene(
+        camera=CAMERA,
+        markers=tuple(markers),
+        trajectory=_static(0.6, 30.0, 10.0, 0.0),
+        frames=30,
+        noise_sigma=1.0,
+        seed=3,
+    )
+    after = _view(_static(1.3, -35.0, -5.0, 20.0), 10, seed=4)
+    frames = _one_stream(list(SyntheticSource(before)), after)
+    tracker = Tracker(CONFIG, CAMERA)
+    results = [tracker.process(frame) for frame in frames]
+    m1 = TargetId.marker(1)
+    assert results[29].targets[m1].state is TrackState.TRACKED  # (still and tracked: predictable before the cut)
+    cut_frame = results[30]
+    assert any(e.kind == "jump" for e in cut_frame.targets[M0].events)
+    assert m1 not in cut_frame.targets
+    assert all(m1 not in r.targets for r in results[30:])

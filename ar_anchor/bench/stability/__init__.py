@@ -90,7 +90,7 @@ from .metrics import (
 )
 from .report import acceptance_table, offline_table, stability_markdown, stability_table, write_stability_report
 from .run import ScenarioRun, TargetSeries, run_scenario
-from .scenarios import Scenario, handheld_scenarios, discontinuity_scenarios, stability_scenarios
+from .scenarios import Scenario, discontinuity_scenarios, handheld_scenarios, stability_scenarios
 
 __all__ = [
     "ACCEPTANCE",

@@ -255,6 +255,7 @@ OFFLINE_ACCEPTANCE = {
     "jitter_excess_deg": 1e-9,  # static: offline jitter <= causal + this
     "abs_lag_frames": 0.5,  # moving: |offline lag - the raw measurements' own| <= this (fractional frames)
     "misfit_rows": 0,  # issue 32: measured rows whose output does not fit its own frame (metrics.misfit_rows)
+    "twitches": 0,  # issue 32: as the tracker's (> 10 deg in one frame with < 1 cm of motion)
 }
 
 # A criterion: (causal, offline) metrics of one scope -> (by how much it exceeds its limit, reason text)
@@ -292,7 +293,11 @@ def _offline_checks(moving: bool) -> list[_Check]:
         count = off.get("misfit_rows", 0)
         return count - limits["misfit_rows"], f"{count} offline misfit rows"
 
-    return [wrong, wrong_tracked, jitter, lag, misfit]
+    def twitches(trk: dict, off: dict) -> tuple[float, str]:
+        count = off.get("twitches", 0)
+        return count - limits["twitches"], f"{count} offline twitches"
+
+    return [wrong, wrong_tracked, jitter, lag, misfit, twitches]
 
 
 def offline_acceptance(result: dict[str, Any]) -> dict[str, Any]:
@@ -302,7 +307,7 @@ def offline_acceptance(result: dict[str, Any]) -> dict[str, Any]:
     Checked on the pooled numbers and on every target (``OFFLINE_ACCEPTANCE``): offline wrong-frame rate
     (``flipped_pct``; ``interpolated`` frames count) at most the causal tracker's, no offline wrong
     ``tracked`` frame, no offline misfit row (issue 32, :func:`~.metrics.misfit_rows`: a measured output
-    that does not fit its own frame's corners), static jitter at most the causal's, and on moving
+    that does not fit its own frame's corners) and no offline twitch, static jitter at most the causal's, and on moving
     scenarios no lag: a whole-frame
     lag of 0 (:func:`~.metrics.lag_frames`, signed), or else the lag the offline replay adds, its
     fractional lag (:func:`~.metrics.fractional_lag`) less that of the raw per-frame measurements of the

@@ -49,9 +49,10 @@ target's best guess) and :mod:`.track` (:class:`TargetTrack`, which puts them to
 from .evidence import TrackEvent, decided_alone, decisive, margin_scale
 from .noise import pose_covariance, unit_covariances_of
 from .smoothing import KalmanBatch, RotationFilter, TranslationFilter, so3_exp, so3_log
-from .track import TargetTrack, TrackUpdate
+from .track import SEGMENT_STARTS, TargetTrack, TrackUpdate
 
 __all__ = [
+    "SEGMENT_STARTS",
     "KalmanBatch",
     "RotationFilter",
     "TargetTrack",

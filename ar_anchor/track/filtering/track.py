@@ -229,7 +229,7 @@ class TargetTrack:
         if turn > allowed_deg:
             return (
                 f"turned {turn:.0f} deg from both solutions of the track in {gap_s:.3g} s (the motion model allows "
-                f"{allowed_deg:.0f}): a new track segment"
+                f"{allowed_deg:.0f}): a cut or a jump, a new track segment"
             )
         before = self.branches.translation_filter.translation
         shift = min(vector_norm(pose.tvec - before) for pose in solutions)
@@ -237,7 +237,7 @@ class TargetTrack:
         if shift > allowed_m:
             return (
                 f"moved {shift * 100:.1f} cm in {gap_s:.3g} s (the motion model allows {allowed_m * 100:.1f}): "
-                "a new track segment"
+                "a cut or a jump, a new track segment"
             )
         return None
 
