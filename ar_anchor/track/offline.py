@@ -227,7 +227,7 @@ def _flip(
     - neither vouching, both committed to the same solution with only such doubts: the evidence before
       and after the frame agree, the frame's own close call cannot overturn them: ``tracked``;
     - else ``ambiguous`` on the forward pass's solution (the live filter's), or, where the passes stand on
-      different solutions and only the backward pass doubts nothing of the frame's pose, on its solution.
+      different solutions and only the backward pass, committed, doubts nothing of the frame's pose, on its.
 
     Motion blur (``blurred``) is no doubt on a pass standing on the frame's lower-error solution when the
     frame alone decides the flip (``alone``: :func:`~.filtering.decided_alone`): the frame settles its own
@@ -242,9 +242,9 @@ def _flip(
     if f_sure:
         return (TrackState.TRACKED if not b_sure or b_choice == f_choice else TrackState.AMBIGUOUS), f_choice
     choice = f_choice if f_choice >= 0 else max(b_choice, 0)
-    if forward is not None and back is not None and f_choice != b_choice:
+    if forward is not None and back is not None and f_choice != b_choice and back.committed:
         if not _pose_sound(forward, f_choice, alone) and _pose_sound(back, b_choice, alone):
-            choice = b_choice  # the passes disagree, neither sure: the one that doubts nothing of the frame's pose
+            choice = b_choice  # the passes disagree, neither sure: the committed one that doubts nothing of the pose
     pose_doubted = (blurred and not (alone and choice == 0)) or any(
         not _pose_sound(p, c, alone) for p, c in ((forward, f_choice), (back, b_choice)) if p is not None
     )

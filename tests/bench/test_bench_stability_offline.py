@@ -229,8 +229,12 @@ def test_evaluate_scores_the_offline_pipeline_pooled_with_interpolated_frames_co
     assert offline["lag_frames"] == 0
     assert result["targets"]["marker:1"]["offline"]["wrong_frames"] == 1  # the interpolated frame counts
     assert offline["flipped_pct"] == pytest.approx(100.0 / 80)
-    # and the offline acceptance fails on the wrong interpolated frame (pooled and on marker:1) only
-    assert result["offline_acceptance"]["failed"] == ["offline wrong 1.25 % > causal 0.00 % (1 of 2 targets)"]
+    # and the offline acceptance fails on the wrong interpolated frame (pooled and on marker:1) only: its
+    # rate, and the twitches in and out of it (85 deg in place)
+    assert result["offline_acceptance"]["failed"] == [
+        "offline wrong 1.25 % > causal 0.00 % (1 of 2 targets)",
+        "2 offline twitches (1 of 2 targets)",
+    ]
     assert "| hand-made | 0.00 / 1.25 | 0 | 25.0 / 0.0 | 2.5 |" in offline_table([result])
     # a run without the offline replay has no offline pipeline (the issue-16 tables stay as they were)
     run.offline = {}

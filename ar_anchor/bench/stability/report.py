@@ -10,6 +10,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
+
 from ...camera import CameraModel
 from ...config import TrackerConfig
 from ..report import fmt
@@ -179,6 +181,7 @@ def _meta(
         "wall_time_s": wall,
         "camera": f"{camera.width}x{camera.height} fx={camera.camera_matrix[0, 0]:g}",
         "python": platform.python_version(),
+        "opencv": cv2.__version__,
         "machine": platform.machine(),
         "frames_per_scenario": next((s.frames for s in scenarios if s.motion != "handheld"), None),
         "decisive": {"ratio": DECISIVE_RATIO, "margin_px": DECISIVE_MARGIN_PX},
@@ -230,7 +233,8 @@ def stability_markdown(results: list[dict[str, Any]], meta: dict[str, Any]) -> s
     text = [
         "# Stability benchmark: raw per-frame IPPE vs. the tracker",
         "",
-        f"Produced by `{meta['command']}` in {meta['wall_time_s']:.0f} s. Calm scenarios: {meta['camera']}, 30 fps, "
+        f"Produced by `{meta['command']}` in {meta['wall_time_s']:.0f} s (OpenCV {meta.get('opencv', '?')}). Calm "
+        f"scenarios: {meta['camera']}, 30 fps, "
         f"{fmt(meta['frames_per_scenario'])} frames per scenario, sensor noise 2 grey levels unless stated, blur "
         "0.6 px. Hand-held scenarios (`hh ...`): webcam-like cameras (640x480 or 720p), the camera's own frame rate "
         "and clip length, motion blur over the exposure, rolling shutter, compression, lighting drift, tremor and "
