@@ -103,7 +103,9 @@ def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
         return False
     sequence = getattr(args, "sequence", False) or args.fps is not None
     count = f"{info.frame_count} image(s)" if info.frame_count is not None else "the images"
-    if sequence:
+    if sequence and getattr(args, "no_filter", False):
+        note = f"{count} tracked in order, each decided alone (--no-filter)"
+    elif sequence:
         note = f"{count} tracked as one sequence, in order"
     else:
         note = f"{count} taken as independent stills, each decided alone (--sequence if they are one video's frames)"
