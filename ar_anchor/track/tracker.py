@@ -413,13 +413,13 @@ class Tracker:
                 )  # fmt: skip
         t2 = time.perf_counter()
         if self.config.filter.enabled:
-            targets = self._filter(measured, frame.timestamp_ns, camera, blurred, frame.index)
+            targets = self._filter(measured, frame, camera, blurred)
         else:
             targets = {name: self._raw_result(name, measured[name], camera) for name in TargetId.ordered(measured)}
         if self.groups is not None:
             targets = self._settle_groups(targets, measured, layouts, events, camera, frame.index)
         if self.config.filter.enabled:  # (without it every output is the frame's own best solution)
-            targets = self._fit_to_frame(targets, measured, frame.timestamp_ns, camera, blurred, frame.index)
+            targets = self._fit_to_frame(targets, measured, frame, camera, blurred)
             targets = self._after_a_cut(targets, frame.index)
         t3 = time.perf_counter()
         latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
@@ -542,10 +542,9 @@ class Tracker:
         self,
         targets: dict[TargetId, TargetResult],
         measured: dict[TargetId, MarkerPose | BoardPose],
-        timestamp_ns: int,
+        frame: Frame,
         camera: CameraModel,
         blurred: bool,
-        index: int = -1,
     ) -> dict[TargetId, TargetResult]:
         """Every measured output checked against its own frame (:func:`~.fit.refit`): one that misses the
         frame's corners is moved just enough to fit (a spike held back, a lag) or, held over a cut or on the
@@ -561,10 +560,10 @@ class Tracker:
                 continue
             assert solved is not None
             replaced, restart = fitted
-            log.info("frame %d: %s: %s", index, name, replaced.events[-1].message)
+            log.info("frame %d: %s: %s", frame.index, name, replaced.events[-1].message)
             track = self.tracks.get(name)
             if restart and track is not None:
-                started = track.restart_from(solved, timestamp_ns, camera, blurred=blurred)
+                started = track.restart_from(solved, frame.timestamp_ns, camera, blurred=blurred)
                 replaced = dataclasses.replace(replaced, events=(*replaced.events, *started))
             targets[name] = replaced
         return targets
@@ -588,19 +587,14 @@ class Tracker:
         return {name: target for name, target in targets.items() if target.measured}
 
     def _filter(
-        self,
-        measured: dict[TargetId, MarkerPose | BoardPose],
-        timestamp_ns: int,
-        camera: CameraModel,
-        blurred: bool,
-        index: int = -1,
+        self, measured: dict[TargetId, MarkerPose | BoardPose], frame: Frame, camera: CameraModel, blurred: bool
     ) -> dict[TargetId, TargetResult]:
         """Every track's update (:func:`update_tracks`), as each target's :class:`TargetResult`."""
         targets: dict[TargetId, TargetResult] = {}
-        updates = update_tracks(self.tracks, measured, timestamp_ns, camera, blurred, self.config.filter)
+        updates = update_tracks(self.tracks, measured, frame.timestamp_ns, camera, blurred, self.config.filter)
         for name, update in updates.items():
             for event in update.events if update is not None else ():
-                log.info("frame %d: %s: %s", index, name, event.message)
+                log.info("frame %d: %s: %s", frame.index, name, event.message)
             if update is None:  # nothing to publish: a gap too long to predict through, or lost for good
                 continue
             solved = measured.get(name)
