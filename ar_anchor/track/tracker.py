@@ -37,7 +37,8 @@ from .filtering import (
 )
 from .fit import refit
 from .groups import GroupLayout, GroupLearner, members_from_groups
-from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms, solve_marker
+from .marker_poses import solve_markers
+from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms
 
 __all__ = ["FrameResult", "TargetResult", "Tracker"]
 
@@ -372,16 +373,17 @@ class Tracker:
         failures: list[PoseFailure] = []
         observed = detections  # (as seen: the frame's result keeps them, for the next search and the drawing)
         detections = self._at_first_row(detections, frame)
-        for marker_id, corners in zip(detections.ids.tolist(), detections.corners):
-            if not self.config.tracks_marker(marker_id):
-                continue
-            solved = solve_marker(
-                marker_id, corners, self.config.marker_length(marker_id), camera, self.config.pose.max_reproj_px
-            )
+        wanted = [self.config.tracks_marker(i) for i in detections.ids.tolist()]
+        ids = detections.ids[wanted] if len(wanted) else detections.ids
+        lengths = np.array([self.config.marker_length(i) for i in ids.tolist()], np.float64)
+        for solved in solve_markers(
+            ids, detections.corners[wanted] if len(wanted) else detections.corners, lengths, camera,
+            self.config.pose.max_reproj_px,
+        ):  # fmt: skip
             if isinstance(solved, PoseFailure):
                 failures.append(solved)
-                continue
-            measured[solved.target] = solved
+            else:
+                measured[solved.target] = solved
         for solver in self.board_solvers:
             board = solver.solve(
                 detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, image=frame.image
