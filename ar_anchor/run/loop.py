@@ -25,8 +25,8 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import AbstractContextManager, contextmanager
+from collections.abc import Callable, Generator, Iterable, Iterator
+from contextlib import AbstractContextManager, closing, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,9 +36,10 @@ from ..errors import ArAnchorError, InputError
 from ..render.overlay import OverlayRenderer
 from ..render.video import SUPPORTED_EXTENSIONS
 from ..sources.base import Frame, FrameSource, SourceInfo
+from ..track.ahead import detected_ahead
 from ..track.offline import decide, offline_results
 from ..track.spool import SpoolStore
-from ..track.tracker import FrameResult, Tracker
+from ..track.tracker import DetectedFrame, FrameResult, Tracker
 from .hints import RunHints
 from .interrupts import InterruptGuard
 from .options import RunOptions
@@ -187,6 +188,7 @@ class _FrameFeed:
 
     def __init__(self, source: FrameSource, info: SourceInfo, options: RunOptions, guard: InterruptGuard) -> None:
         self.total = info.frame_count
+        self.live = info.live
         if options.max_frames is not None:
             self.total = options.max_frames if self.total is None else min(self.total, options.max_frames)
         self._prefetcher: Prefetcher | None = None
@@ -218,14 +220,18 @@ def _track(
 ) -> None:
     """Track each frame of ``feed`` and ``keep(frame, result, truth, stages)`` it (written to the outputs,
     or spooled for an offline replay), which returns how many frames are kept so far."""
-    for frame, decode_ms in feed:
-        result, stages, truth = _tracked(tracker, frame, decode_ms)
-        kept = keep(frame, result, truth, stages)
-        hints.after_frame(frame, result)
-        if progress is not None:
-            progress(kept, feed.total, result)
-        if options.max_frames is not None and kept >= options.max_frames:
-            break  # before taking another frame from the source
+    # files and renders: each frame's detection overlaps the frame before's pose and filter (see track/ahead.py)
+    frames: Generator[tuple[Frame, float | None, DetectedFrame | None], None, None]
+    frames = ((f, d, None) for f, d in feed) if feed.live else detected_ahead(tracker, feed)
+    with closing(frames):  # (an early end waits for the detection under way)
+        for frame, decode_ms, detected in frames:
+            result, stages, truth = _tracked(tracker, frame, decode_ms, detected)
+            kept = keep(frame, result, truth, stages)
+            hints.after_frame(frame, result)
+            if progress is not None:
+                progress(kept, feed.total, result)
+            if options.max_frames is not None and kept >= options.max_frames:
+                break  # before taking another frame from the source (files: one more may be under detection)
 
 
 def _writer(outputs: RunOutputs, guard: InterruptGuard) -> Callable[..., int]:
@@ -240,12 +246,13 @@ def _writer(outputs: RunOutputs, guard: InterruptGuard) -> Callable[..., int]:
 
 
 def _tracked(
-    tracker: Tracker, frame: Frame, decode_ms: float | None
+    tracker: Tracker, frame: Frame, decode_ms: float | None, detected: DetectedFrame | None = None
 ) -> tuple[FrameResult, dict[str, float], dict[str, Any] | None]:
-    """One frame tracked: its result, the loop's own stage times (ms: decode, and from the frame's arrival
-    the wait and capture-to-pose), and the truth of the targets the tracker reports (None: no truth)."""
+    """One frame tracked (``detected``: its detection, done ahead): its result, the loop's own stage times
+    (ms: decode, and from the frame's arrival the wait and capture-to-pose), and the truth of the targets
+    the tracker reports (None: no truth)."""
     began_ns = time.monotonic_ns()
-    result = tracker.process(frame)
+    result = tracker.process(frame) if detected is None else tracker.track(detected)
     tracked_ns = time.monotonic_ns()
     stages = {} if decode_ms is None else {"decode_ms": decode_ms}
     if frame.arrived_ns is not None:

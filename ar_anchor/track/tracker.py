@@ -114,6 +114,19 @@ class FrameResult:
     groups: dict[TargetId, GroupLayout] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class DetectedFrame:
+    """A frame after :meth:`Tracker.detect`, the first stage: its markers and what the stages after need."""
+
+    frame: Frame
+    camera: CameraModel  # the calibration at the frame's size
+    detections: MarkerDetections
+    blurred: bool  # motion-blurred (see Tracker._blurred)
+    detail: float  # the fine-scale contrast (FrameResult.detail)
+    repeated: bool  # the last new frame's pixels and markers again: its answer stands
+    detect_ms: float
+
+
 class Tracker:
     """Stateful per-stream tracker. Feed frames in order to :meth:`process`. ``stills``: the frames are
     independent photos, each processed alone (as by a new tracker: nothing carried from one to the next).
@@ -144,6 +157,7 @@ class Tracker:
         self._sharpness: float | None = None  # typical variance of the fingerprint's Laplacian (blur)
         self._detail = math.nan  # this frame's fine-scale contrast (see FrameResult.detail)
         self._previous: FrameResult | None = None
+        self._last_observed: MarkerDetections | None = None  # the last new frame's markers (repeats)
         self._seen: dict[int, tuple[np.ndarray, int]] = {}  # marker id -> (last corners, when)
         self._shutter_previous: tuple[int, dict[int, np.ndarray]] | None = None  # (see _at_first_row)
         self._shutter_warned = False
@@ -298,17 +312,44 @@ class Tracker:
         seen got no pose; ``latency_ms`` the stage times. A frame that repeats the previous one's
         pixels (a 30 fps container carrying 12 fps content) returns the previous answer, marked
         ``repeated``: it is no new measurement.
+
+        The same as ``track(detect(frame))``: the two halves may run in two threads, :meth:`detect` of
+        a frame while :meth:`track` takes the one before (:func:`detected_ahead`), with the same results.
         """
+        return self.track(self.detect(frame))
+
+    def detect(self, frame: Frame) -> DetectedFrame:
+        """The first stage of :meth:`process`: whether the frame repeats the last one or is motion-blurred,
+        and its markers (detection state only: ROI regions, repeats, sharpness; see :meth:`track`)."""
         if self.stills:
-            self.reset()
+            self._reset_detection()
         fingerprint = _every_4th_pixel(frame.image)
-        candidate = self._previous is not None and self._repeats(fingerprint)
-        result = self._process(frame, self._blurred(fingerprint), repeat_candidate=candidate)
-        if result.repeated:
+        candidate = self._last_observed is not None and self._repeats(fingerprint)
+        blurred = self._blurred(fingerprint)
+        camera = self.camera_for(frame.size)
+        t0 = time.perf_counter()
+        detections = self._detect(frame.image, camera, frame.timestamp_ns, blurred)
+        if candidate and self._last_observed is not None and _same_corners(detections, self._last_observed):
+            detect_ms = (time.perf_counter() - t0) * 1e3
+            return DetectedFrame(frame, camera, detections, blurred, self._detail, True, detect_ms)
+        if self.config.pose.recover_markers:
+            for solver in self.board_solvers:
+                detections = self.detector.recover(
+                    frame.image, detections, solver.cv_board, camera.camera_matrix, camera.dist_or_none
+                )
+        self._fingerprint, self._last_observed = fingerprint, detections
+        return DetectedFrame(frame, camera, detections, blurred, self._detail, False, (time.perf_counter() - t0) * 1e3)
+
+    def track(self, detected: DetectedFrame) -> FrameResult:
+        """The rest of :meth:`process` for a frame :meth:`detect` took (frames in order): solve, filter,
+        check against the frame, results."""
+        if self.stills:
+            self._reset_tracking()
+        if detected.repeated and self._previous is not None:
             # a repeated frame (a 30 fps container carrying 12 fps content): the same content is no new
             # evidence; the last answer stands, with this frame's index and time
-            return result
-        self._fingerprint = fingerprint
+            return self._repeat(detected.frame, detected.detect_ms)
+        result = self._process(detected)
         self._previous = result
         return result
 
@@ -357,17 +398,9 @@ class Tracker:
             repeated=True,
         )
 
-    def _process(self, frame: Frame, blurred: bool = False, repeat_candidate: bool = False) -> FrameResult:
-        camera = self.camera_for(frame.size)
-        t0 = time.perf_counter()
-        detections = self._detect(frame.image, camera, frame.timestamp_ns, blurred)
-        if repeat_candidate and self._previous is not None and _same_corners(detections, self._previous.detections):
-            return self._repeat(frame, (time.perf_counter() - t0) * 1e3)
-        if self.config.pose.recover_markers:
-            for solver in self.board_solvers:
-                detections = self.detector.recover(
-                    frame.image, detections, solver.cv_board, camera.camera_matrix, camera.dist_or_none
-                )
+    def _process(self, detected: DetectedFrame) -> FrameResult:
+        frame, camera, blurred = detected.frame, detected.camera, detected.blurred
+        detections = detected.detections
         t1 = time.perf_counter()
         measured: dict[TargetId, MarkerPose | BoardPose] = {}
         failures: list[PoseFailure] = []
@@ -424,7 +457,7 @@ class Tracker:
             targets = self._fit_to_frame(targets, measured, frame, camera, blurred)
             targets = self._after_a_cut(targets, frame.index)
         t3 = time.perf_counter()
-        latency = {"detect_ms": (t1 - t0) * 1e3, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
+        latency = {"detect_ms": detected.detect_ms, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
         return FrameResult(
             frame.index,
             frame.timestamp_ns,
@@ -434,7 +467,7 @@ class Tracker:
             latency,
             camera,
             blurred=blurred,
-            detail=self._detail,
+            detail=detected.detail,
             measurements=measured,
             groups=layouts,
         )
@@ -674,13 +707,22 @@ class Tracker:
         """Forget everything learned from earlier frames (e.g. after a cut in the video): the tracks
         with their flip evidence, where markers were (ROI search), repeats and sharpness. The next
         frame is processed exactly as a new tracker would."""
-        self.tracks.clear()
-        self._previous = self._fingerprint = None
+        self._reset_detection()
+        self._reset_tracking()
+
+    def _reset_detection(self) -> None:
+        """:meth:`reset`'s part that :meth:`detect` keeps: where markers were, repeats, sharpness."""
+        self._fingerprint = self._last_observed = None
         self._sharpness = None
         self._last_corners, self._before_corners, self._seen = {}, {}, {}
-        self._shutter_previous = None
         self._frames_since_full = self._frames_since_thorough = 0
         self._last_size = None
+
+    def _reset_tracking(self) -> None:
+        """:meth:`reset`'s part that :meth:`track` keeps: the tracks, the last answer, learned groups."""
+        self.tracks.clear()
+        self._previous = None
+        self._shutter_previous = None
         if self.groups is not None:
             self.groups = GroupLearner(self.config)
 
