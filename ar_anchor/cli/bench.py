@@ -32,7 +32,10 @@ def add_parser(commands: Any) -> None:
         "name",
         choices=("stability", "boards", "overlay", "speed", "run", "real", "profile", "offline", "batch", "groups"),
         help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
-        "speed: per-stage times and accuracy of the tracker (full frame, ROI) vs a plain OpenCV loop; "
+        "speed: issue 33's acceptance, each a row with its target and pass/fail: chessboard.avi looped, 720p "
+        "50 markers, 1080p one marker (replay processes vs a plain OpenCV SUBPIX + IPPE loop, taking turns), "
+        "start-up, --help, live latency (--stages: per-stage times and accuracy of the tracker vs plain "
+        "OpenCV loops in one process); "
         "run: ar-anchor replay fps, live latency and memory over a long live run, at 1080p; "
         "real: relative-pose consistency of markers on one rigid sheet in a real video (tracker, its raw "
         "per-frame pick, plain OpenCV), default chessboard.avi from $AR_ANCHOR_REALDATA; profile: the tracker's CPU "
@@ -64,16 +67,29 @@ def add_parser(commands: Any) -> None:
         "--clips",
         type=_clip_list,
         default=None,
-        help="speed: only these clips, comma-separated, of one,eight,board (every size),50markers,chessboard "
-        "(default: all); run: of 1080p,live,chessboard,50markers (default: all)",
+        help="speed: only these parts, comma-separated, of chessboard,50markers,1080p,startup,live (default: "
+        "all; --stages: clips of one,eight,board (every size),50markers,chessboard); run: of "
+        "1080p,live,chessboard,50markers (default: all)",
     )
     bench.add_argument(
         "--frames",
         type=int_at_least(1),
         default=None,
-        help="speed: frames per synthetic clip, chessboard.avi at most this (default 300; --quick 90); "
+        help="speed: frames of the synthetic clips (default 300 at 720p, 800 at 1080p; --quick 60, 120; "
+        "--stages: per synthetic clip, chessboard.avi at most this, default 300, --quick 90); "
         "run: frames of the encoded 1080p and 50-marker clips (default 600; --quick 150); "
         "batch: frames per clip (default 300; --quick 60)",
+    )
+    bench.add_argument(
+        "--repeats",
+        type=int_at_least(1),
+        default=None,
+        help="speed: rounds of runs taking turns, medians over them (default 3; --quick 1)",
+    )
+    bench.add_argument(
+        "--stages",
+        action="store_true",
+        help="speed: the per-stage comparison in one process (speed_stages.md) instead of the acceptance",
     )
     bench.add_argument("--config", type=Path, default=None, help="tracker TOML (default: configs/default.toml values)")
     bench.add_argument(
@@ -152,17 +168,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         write_groups_report(args.out, quick=args.quick, progress=progress, command=command, config=config)
     elif args.name == "speed":
-        from ..bench.speed import write_speed_report
-
-        scenes, extra = clips if clips is not None else (None, None)
-        results = write_speed_report(
-            args.out,
-            quick=args.quick,
-            progress=progress,
-            command=command,
-            frames=args.frames,
-            **({"scenes": scenes, "extra": extra} if clips is not None else {}),
-        )
+        results = _speed(args, clips, progress, command)
         for note in (results or {}).get("notes", []):  # (None from a stubbed writer)
             print(f"note: {note}", file=sys.stderr)
     elif args.name == "overlay":
@@ -172,17 +178,49 @@ def cmd_bench(args: argparse.Namespace) -> int:
         write_board_report(args.out, config=config, frames=frames, progress=progress, command=command)
     else:
         write_stability_report(args.out, quick=args.quick, config=config, progress=progress, command=command)
-    print(f"results: {args.out / (args.name + '.md')} and {args.out / (args.name + '.json')}")
+    name = "speed_stages" if args.name == "speed" and args.stages else args.name
+    print(f"results: {args.out / (name + '.md')} and {args.out / (name + '.json')}")
     return EXIT_OK
+
+
+def _speed(args: argparse.Namespace, clips: Any, progress: Any, command: str) -> Any:
+    """``bench speed``: the acceptance (``clips``: its parts) or, with ``--stages``, the per-stage comparison
+    (``clips``: its scenes and extra clips); the results."""
+    if not args.stages:
+        from ..bench.speed import write_speed_report
+
+        return write_speed_report(
+            args.out,
+            quick=args.quick,
+            progress=progress,
+            command=command,
+            frames=args.frames,
+            repeats=args.repeats,
+            **({"parts": clips} if clips is not None else {}),
+        )
+    from ..bench.speed import write_stages_report
+
+    scenes, extra = clips if clips is not None else (None, None)
+    return write_stages_report(
+        args.out,
+        quick=args.quick,
+        progress=progress,
+        command=command,
+        frames=args.frames,
+        **({"scenes": scenes, "extra": extra} if clips is not None else {}),
+    )
 
 
 def _command(args: argparse.Namespace) -> str:
     """The command line the report quotes (the options that change what is measured)."""
-    command = f"ar-anchor bench {args.name}" + (" --quick" if args.quick else "")
+    command = f"ar-anchor bench {args.name}" + (" --stages" if args.name == "speed" and args.stages else "")
+    command += " --quick" if args.quick else ""
     if args.clips is not None:
         command += " --clips " + ",".join(args.clips)
     if args.frames is not None:
         command += f" --frames {args.frames}"
+    if args.repeats is not None:
+        command += f" --repeats {args.repeats}"
     return command
 
 
@@ -199,6 +237,12 @@ def _profile(args: argparse.Namespace, real: Any, command: str) -> None:
 def _checked_clips(args: argparse.Namespace) -> Any:
     """``--clips`` checked against the chosen benchmark's names: speed's (scenes, extra clips), run's parts,
     None when not given; :class:`InputError` (exit 2) for an unknown name or a benchmark without clips."""
+    if args.name != "speed" and (args.stages or args.repeats is not None):
+        raise InputError(
+            f"{'--stages' if args.stages else '--repeats'}: only bench speed takes it, not bench {args.name}"
+        )
+    if args.name == "speed" and args.stages and args.repeats is not None:
+        raise InputError("--repeats: bench speed --stages does not take it")
     if args.clips is None and args.frames is None:
         return None
     if args.name == "profile" and args.clips is None:
@@ -210,13 +254,20 @@ def _checked_clips(args: argparse.Namespace) -> Any:
         raise InputError(f"{option}: only bench speed and bench run take it, not bench {args.name}")
     if args.clips is None:
         return None
-    if args.name == "speed":
+    if args.name == "speed" and args.stages:
         from ..bench.speed import split_clips
 
         try:
             return split_clips(",".join(args.clips))
         except ValueError as err:
             raise InputError(f"--clips: {err}") from None
+    if args.name == "speed":
+        from ..bench.speed import PARTS
+
+        unknown = [name for name in args.clips if name not in PARTS]
+        if unknown:
+            raise InputError(f"--clips: unknown part {unknown[0]!r} of bench speed (any of {','.join(PARTS)})")
+        return tuple(name for name in PARTS if name in args.clips)
     from ..bench.run import RUN_PARTS
 
     unknown = [name for name in args.clips if name not in RUN_PARTS]

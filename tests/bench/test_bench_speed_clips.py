@@ -1,4 +1,4 @@
-"""The clips of issue 19 in ``bench speed`` and ``bench run``: the 50-marker scene, chessboard.avi (skipped
+"""The clips of issue 19 in ``bench speed --stages`` and ``bench run``: the 50-marker scene, chessboard.avi (skipped
 cleanly without the real data), the new columns on a tiny run, ``--clips``, and the plain-loop process.
 
 Timings are for the reports only: nothing here asserts on speed.
@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from ar_anchor.bench.run import RUN_PARTS, run_markdown, run_run_benchmark
-from ar_anchor.bench.speed import CLIP_NAMES, PIPELINES, render_clip, speed_scene, split_clips, write_speed_report
+from ar_anchor.bench.speed import CLIP_NAMES, PIPELINES, render_clip, speed_scene, split_clips, write_stages_report
 from ar_anchor.bench.speed.real_clip import chessboard_files
-from ar_anchor.bench.speed.run import run_speed_benchmark
 from ar_anchor.bench.speed.scenes import FIFTY, FIFTY_SIZE
+from ar_anchor.bench.speed.stages_run import run_stages_benchmark
 from ar_anchor.camera import CameraModel
 from ar_anchor.cli.main import main
 from ar_anchor.sources.synthetic import SyntheticSource
@@ -63,7 +63,7 @@ def test_fifty_marker_render_detected_by_plain_opencv():
 
 def test_chessboard_skipped_with_a_note_when_absent(no_realdata):
     # when only the real clip is asked for and the real data is absent
-    results = run_speed_benchmark(2, [], [], extra=("chessboard",), end_to_end=False)
+    results = run_stages_benchmark(2, [], [], extra=("chessboard",), end_to_end=False)
     # then no clip, one one-line note naming the missing file and how to point at the data
     assert results["clips"] == [] and results["end_to_end"] is None
     (note,) = results["notes"]
@@ -73,12 +73,12 @@ def test_chessboard_skipped_with_a_note_when_absent(no_realdata):
 
 def test_chessboard_skipped_in_the_cli(no_realdata, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["bench", "speed", "-q", "--clips", "chessboard", "--frames", "2", "--out", str(out)]) == 0
+    assert main(["bench", "speed", "--stages", "-q", "--clips", "chessboard", "--frames", "2", "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "note: chessboard clip skipped" in err and len([ln for ln in err.splitlines() if "note:" in ln]) == 1
-    text = (out / "speed.md").read_text()
-    assert "Note: chessboard clip skipped" in text and "--clips chessboard --frames 2" in text
-    assert json.loads((out / "speed.json").read_text())["clips"] == []
+    text = (out / "speed_stages.md").read_text()
+    assert "Note: chessboard clip skipped" in text and "--stages --clips chessboard --frames 2" in text
+    assert json.loads((out / "speed_stages.json").read_text())["clips"] == []
 
 
 def test_bench_run_chessboard_skipped_when_absent(no_realdata):
@@ -91,7 +91,11 @@ def test_bench_run_chessboard_skipped_when_absent(no_realdata):
 @pytest.mark.parametrize(
     ("argv", "expected"),
     [
-        (["bench", "speed", "--clips", "nine"], "--clips: unknown clip 'nine'"),
+        (["bench", "speed", "--stages", "--clips", "nine"], "--clips: unknown clip 'nine'"),
+        (["bench", "speed", "--clips", "one"], "--clips: unknown part 'one' of bench speed"),
+        (["bench", "speed", "--stages", "--repeats", "2"], "--repeats: bench speed --stages does not take it"),
+        (["bench", "stability", "--stages"], "--stages: only bench speed takes it"),
+        (["bench", "run", "--repeats", "2"], "--repeats: only bench speed takes it"),
         (["bench", "run", "--clips", "one"], "--clips: unknown part 'one' of bench run"),
         (["bench", "stability", "--clips", "one"], "--clips: only bench speed and bench run"),
         (["bench", "boards", "--frames", "3"], "--frames: only bench speed and bench run"),
@@ -135,7 +139,7 @@ def _check_new_columns(clip: dict) -> None:
 @pytest.mark.slow
 def test_smoke_fifty_markers(tmp_path):
     # a tiny run of the 50-marker clip alone
-    results = write_speed_report(
+    results = write_stages_report(
         tmp_path, frames=4, sizes=[], scenes=[], extra=(FIFTY,), one_thread=False, end_to_end=False, command="t"
     )
     (clip,) = results["clips"]
@@ -145,7 +149,7 @@ def test_smoke_fifty_markers(tmp_path):
         pipe = clip["pipelines"][key]
         assert pipe["found_per_frame"]["min"] == 50, key  # every marker found in every frame
         assert pipe["accuracy"]["marker"]["in_view"] == 200 and pipe["accuracy"]["marker"]["found_pct"] == 100.0
-    text = (tmp_path / "speed.md").read_text()
+    text = (tmp_path / "speed_stages.md").read_text()
     for heading in ("## Per marker", "## Peak memory per pipeline", "ROI / SUBPIX", "720p 50 markers"):
         assert heading in text
 
@@ -153,7 +157,7 @@ def test_smoke_fifty_markers(tmp_path):
 @pytest.mark.slow
 def test_smoke_chessboard(realdata, monkeypatch, tmp_path):
     monkeypatch.setenv("AR_ANCHOR_REALDATA", str(realdata))
-    results = write_speed_report(
+    results = write_stages_report(
         tmp_path,
         frames=8,
         sizes=[],
@@ -169,7 +173,7 @@ def test_smoke_chessboard(realdata, monkeypatch, tmp_path):
     _check_new_columns(clip)
     for pipe in clip["pipelines"].values():
         assert pipe["accuracy"]["marker"] == {"in_view": 0}  # no truth: the accuracy columns stay empty
-    assert "- (no truth)" in (tmp_path / "speed.md").read_text()
+    assert "- (no truth)" in (tmp_path / "speed_stages.md").read_text()
 
 
 def test_plain_loop_process(tmp_path):

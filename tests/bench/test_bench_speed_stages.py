@@ -1,4 +1,4 @@
-"""The speed benchmark's plumbing on a tiny run: structure, finite stage times, accuracy, report files.
+"""``bench speed --stages``: its plumbing on a tiny run: structure, finite stage times, accuracy, report files.
 
 Timings are for the report only: nothing here asserts on speed.
 """
@@ -18,7 +18,7 @@ from ar_anchor.bench.speed import (
     PIPELINES,
     render_clip,
     speed_scene,
-    write_speed_report,
+    write_stages_report,
 )
 from ar_anchor.bench.speed.measure import PLAIN_PIPELINES as PLAIN
 from ar_anchor.camera import CameraModel
@@ -33,7 +33,7 @@ def tiny(tmp_path_factory):
     out = tmp_path_factory.mktemp("speed")
     calls = []
     threads = cv2.getNumThreads()
-    results = write_speed_report(
+    results = write_stages_report(
         out,
         progress=lambda i, total, name: calls.append((i, total, name)),
         command="test bench speed",
@@ -52,11 +52,11 @@ def _finite_positive(stats: dict) -> bool:
 @pytest.mark.slow
 def test_structure_and_files(tiny):
     out, results, calls, threads = tiny
-    assert (out / "speed.md").is_file() and (out / "speed.json").is_file()
-    text = (out / "speed.md").read_text()
+    assert (out / "speed_stages.md").is_file() and (out / "speed_stages.json").is_file()
+    text = (out / "speed_stages.md").read_text()
     assert "test bench speed" in text and "360p one marker" in text and "360p 2x2 board" in text
     assert "setNumThreads(1)" in text and "End to end" in text
-    saved = json.loads((out / "speed.json").read_text())
+    saved = json.loads((out / "speed_stages.json").read_text())
     assert saved["meta"]["command"] == "test bench speed"
     assert [c["label"] for c in saved["clips"]] == ["360p one marker", "360p 2x2 board"]
     assert cv2.getNumThreads() == threads  # the one-thread pass restores the setting
@@ -129,4 +129,4 @@ def test_render_clip_noise_and_truth():
 
 def test_unknown_scene_rejected(tmp_path):
     with pytest.raises(ValueError, match="unknown speed scene"):
-        write_speed_report(tmp_path, frames=2, sizes=[SMALL], scenes=["nine"])
+        write_stages_report(tmp_path, frames=2, sizes=[SMALL], scenes=["nine"])

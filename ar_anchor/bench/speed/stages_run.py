@@ -1,5 +1,5 @@
-"""The speed benchmark's run: every (size, scene) clip rendered, timed and scored, then the end-to-end
-chain and the memory figures."""
+"""``ar-anchor bench speed --stages``: every (size, scene) clip rendered, timed in-process and scored, then the
+end-to-end chain and the memory figures."""
 
 from __future__ import annotations
 
@@ -49,12 +49,12 @@ from .scenes import (
     speed_scene,
 )
 
-__all__ = ["run_speed_benchmark"]
+__all__ = ["run_stages_benchmark"]
 
 Size = tuple[int, int, float]  # width, height, fx
 
 
-def run_speed_benchmark(
+def run_stages_benchmark(
     frames: int = 300,
     sizes: Sequence[Size] = SIZES,
     scenes: Sequence[str] = SCENES,
