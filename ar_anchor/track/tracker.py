@@ -399,69 +399,22 @@ class Tracker:
         )
 
     def _process(self, detected: DetectedFrame) -> FrameResult:
+        """A new frame's trip after detection, one stage after the other: its corners taken back to the first
+        row's time (rolling shutter), every marker and board solved, learned groups, the flip filter, the
+        check that every output fits the frame, the result."""
         frame, camera, blurred = detected.frame, detected.camera, detected.blurred
-        detections = detected.detections
         t1 = time.perf_counter()
-        measured: dict[TargetId, MarkerPose | BoardPose] = {}
-        failures: list[PoseFailure] = []
-        observed = detections  # (as seen: the frame's result keeps them, for the next search and the drawing)
-        detections = self._at_first_row(detections, frame)
-        wanted = [self.config.tracks_marker(i) for i in detections.ids.tolist()]
-        ids = detections.ids[wanted] if len(wanted) else detections.ids
-        lengths = np.array([self.config.marker_length(i) for i in ids.tolist()], np.float64)
-        for solved in solve_markers(
-            ids, detections.corners[wanted] if len(wanted) else detections.corners, lengths, camera,
-            self.config.pose.max_reproj_px,
-        ):  # fmt: skip
-            if isinstance(solved, PoseFailure):
-                failures.append(solved)
-            else:
-                measured[solved.target] = solved
-        for solver in self.board_solvers:
-            board = solver.solve(
-                detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, image=frame.image
-            )
-            if isinstance(board, PoseFailure):
-                failures.append(board)
-            elif board is not None:
-                measured[board.target] = board
-        events: dict[TargetId, list[str]] = {}
-        layouts: dict[TargetId, GroupLayout] = {}
-        if self.groups is not None:
-            events = self.groups.learn(measured, camera)
-            self._end_group_tracks()
-            if self.config.filter.enabled:  # (before this frame's solve: it uses the layout refined there)
-                for name in sorted(self.groups.changed & set(self.groups.groups)):
-                    events.setdefault(name, []).append(self._warm_group_track(name))
-            for name, solved_group in self.groups.solve(
-                detections.ids, detections.corners, camera, self.config.pose.max_reproj_px, image=frame.image
-            ).items():
-                if isinstance(solved_group, PoseFailure):
-                    failures.append(solved_group)
-                else:
-                    measured[name] = solved_group
-            layouts = self.groups.layouts()
-            if self.config.filter.enabled:  # (kept only for the catch-up above)
-                self.groups.remember(
-                    frame.timestamp_ns, detections.ids, detections.corners, camera, self.config.pose.max_reproj_px,
-                    blurred,
-                )  # fmt: skip
+        detections = self._at_first_row(detected.detections, frame)
+        measured, failures = self._solve(detections, frame, camera)
+        events, layouts = self._learn_groups(measured, failures, detections, frame, camera, blurred)
         t2 = time.perf_counter()
-        if self.config.filter.enabled:
-            targets = self._filter(measured, frame, camera, blurred)
-        else:
-            targets = {name: self._raw_result(name, measured[name], camera) for name in TargetId.ordered(measured)}
-        if self.groups is not None:
-            targets = self._settle_groups(targets, measured, layouts, events, camera, frame.index)
-        if self.config.filter.enabled:  # (without it every output is the frame's own best solution)
-            targets = self._fit_to_frame(targets, measured, frame, camera, blurred)
-            targets = self._after_a_cut(targets, frame.index)
+        targets = self._decide(measured, layouts, events, frame, camera, blurred)
         t3 = time.perf_counter()
         latency = {"detect_ms": detected.detect_ms, "pose_ms": (t2 - t1) * 1e3, "filter_ms": (t3 - t2) * 1e3}
         return FrameResult(
             frame.index,
             frame.timestamp_ns,
-            observed,
+            detected.detections,  # (as seen: for the next search and the drawing)
             targets,
             tuple(failures),
             latency,
@@ -471,6 +424,85 @@ class Tracker:
             measurements=measured,
             groups=layouts,
         )
+
+    def _solve(
+        self, detections: MarkerDetections, frame: Frame, camera: CameraModel
+    ) -> tuple[dict[TargetId, MarkerPose | BoardPose], list[PoseFailure]]:
+        """Every tracked marker's poses (one pass over the frame's arrays: :func:`.marker_poses.solve_markers`)
+        and every configured board's; the failures say why a marker or board got none."""
+        measured: dict[TargetId, MarkerPose | BoardPose] = {}
+        failures: list[PoseFailure] = []
+        wanted = np.array([self.config.tracks_marker(i) for i in detections.ids.tolist()], bool)
+        ids = detections.ids[wanted]
+        lengths = np.array([self.config.marker_length(i) for i in ids.tolist()], np.float64)
+        max_px = self.config.pose.max_reproj_px
+        for solved in solve_markers(ids, detections.corners[wanted], lengths, camera, max_px):
+            if isinstance(solved, PoseFailure):
+                failures.append(solved)
+            else:
+                measured[solved.target] = solved
+        for solver in self.board_solvers:
+            board = solver.solve(detections.ids, detections.corners, camera, max_px, image=frame.image)
+            if isinstance(board, PoseFailure):
+                failures.append(board)
+            elif board is not None:
+                measured[board.target] = board
+        return measured, failures
+
+    def _learn_groups(
+        self,
+        measured: dict[TargetId, MarkerPose | BoardPose],
+        failures: list[PoseFailure],
+        detections: MarkerDetections,
+        frame: Frame,
+        camera: CameraModel,
+        blurred: bool,
+    ) -> tuple[dict[TargetId, list[str]], dict[TargetId, GroupLayout]]:
+        """Learned rigid groups (``[groups] learn``): this frame's evidence, then every group solved like a
+        board (added to ``measured`` / ``failures``). Returns the groups' events and the layouts members may
+        follow this frame."""
+        events: dict[TargetId, list[str]] = {}
+        if self.groups is None:
+            return events, {}
+        max_px = self.config.pose.max_reproj_px
+        events = self.groups.learn(measured, camera)
+        self._end_group_tracks()
+        if self.config.filter.enabled:  # (before this frame's solve: it uses the layout refined there)
+            for name in sorted(self.groups.changed & set(self.groups.groups)):
+                events.setdefault(name, []).append(self._warm_group_track(name))
+        for name, solved_group in self.groups.solve(
+            detections.ids, detections.corners, camera, max_px, image=frame.image
+        ).items():
+            if isinstance(solved_group, PoseFailure):
+                failures.append(solved_group)
+            else:
+                measured[name] = solved_group
+        layouts = self.groups.layouts()
+        if self.config.filter.enabled:  # (kept only for the catch-up above)
+            self.groups.remember(frame.timestamp_ns, detections.ids, detections.corners, camera, max_px, blurred)
+        return events, layouts
+
+    def _decide(
+        self,
+        measured: dict[TargetId, MarkerPose | BoardPose],
+        layouts: dict[TargetId, GroupLayout],
+        events: dict[TargetId, list[str]],
+        frame: Frame,
+        camera: CameraModel,
+        blurred: bool,
+    ) -> dict[TargetId, TargetResult]:
+        """Every target's output: the flip filter (without it, each frame's own best solution), members of
+        settled groups, then the check that every output fits this frame and the end of a cut's tracks."""
+        if self.config.filter.enabled:
+            targets = self._filter(measured, frame, camera, blurred)
+        else:
+            targets = {name: self._raw_result(name, measured[name], camera) for name in TargetId.ordered(measured)}
+        if self.groups is not None:
+            targets = self._settle_groups(targets, measured, layouts, events, camera, frame.index)
+        if self.config.filter.enabled:  # (without it every output is the frame's own best solution)
+            targets = self._fit_to_frame(targets, measured, frame, camera, blurred)
+            targets = self._after_a_cut(targets, frame.index)
+        return targets
 
     def _at_first_row(self, detections: MarkerDetections, frame: Frame) -> MarkerDetections:
         """``detections`` with every corner taken back to the frame's first-row time, for a rolling shutter
