@@ -3,17 +3,24 @@
 A package's ``__init__`` that imports every module it re-exports makes any import of one of them (the
 command line's options, say) pay for all of them (matplotlib, OpenCV, rerun): ``ar-anchor --help`` would
 load them all. :func:`lazy_exports` gives the package a module ``__getattr__`` (PEP 562) instead, so that
-``from package import name`` still works and imports only the module that defines ``name``. Standard
-library only.
+``from package import name`` still works and imports only the module that defines ``name``.
+
+A library imported where it is first needed is imported while a command runs, when Ctrl-C and SIGTERM
+raise ``KeyboardInterrupt`` (:mod:`ar_anchor.cli.terminal`). :func:`import_held` imports one whole: a
+signal that arrives meanwhile is delivered once the import is complete, never inside it (where an
+``except BaseException`` of the library's would swallow it). Standard library only.
 """
 
 from __future__ import annotations
 
 import importlib
+import signal
+import threading
 from collections.abc import Callable, Iterable, Mapping
+from types import ModuleType
 from typing import Any
 
-__all__ = ["lazy_exports"]
+__all__ = ["import_held", "lazy_exports"]
 
 
 def lazy_exports(
@@ -36,3 +43,30 @@ def lazy_exports(
         return sorted({*namespace, *where})
 
     return __getattr__, __dir__
+
+
+def import_held(name: str) -> ModuleType:
+    """Import the module ``name`` with SIGINT and SIGTERM held until the import is complete; a signal that
+    arrived meanwhile then goes to the handler that was in place (the first one of them, once).
+
+    For a library whose imports catch ``BaseException`` (trimesh's optional ones do): a ``KeyboardInterrupt``
+    raised inside it was swallowed, and an interrupted run went on and ended with exit 0. Off the main thread
+    (where Python runs no signal handler) and for signals without a Python handler, a plain import."""
+    if threading.current_thread() is not threading.main_thread():
+        return importlib.import_module(name)
+    held: list[int] = []
+    previous: dict[int, Any] = {}
+
+    def hold(signum: int, _frame: object) -> None:
+        held.append(signum)
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if callable(signal.getsignal(signum)):
+            previous[signum] = signal.signal(signum, hold)
+    try:
+        return importlib.import_module(name)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        if held:
+            previous[held[0]](held[0], None)

@@ -91,13 +91,11 @@ def _preload(command: str | None) -> None:
     """Import what ``command`` needs (OpenCV, numpy, rerun, ...) now, while a signal still ends the process
     at once. A module that fails to import is left to the command, which reports it in its own words.
 
-    trimesh (the overlay meshes) too: its optional imports (scipy, ...) sit in ``except BaseException``
-    blocks, which would swallow a Ctrl-C raised while they load (a run that then ends with exit 0)."""
+    Not what only some runs need: trimesh (mesh overlays; the default cube needs none) is imported when a
+    mesh is read, whole (:func:`~ar_anchor.lazy.import_held`: its optional imports catch ``BaseException``
+    and would swallow a Ctrl-C)."""
     try:
         if command in ("demo", "replay", "live", "bench", "batch"):
-            import trimesh  # noqa: F401
-            import trimesh.creation  # noqa: F401
-
             from ..run import loop  # noqa: F401
         elif command == "calibrate":
             from ..tools import calibrate  # noqa: F401

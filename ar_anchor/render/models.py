@@ -11,10 +11,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
 from ..errors import ConfigError
+from ..lazy import import_held
 
 __all__ = ["BUILTIN_MODELS", "Model", "cube_model", "load_mesh", "pin_model"]
 
@@ -92,8 +94,7 @@ def cube_model(side_m: float, subdivisions: int = 1, rgb: tuple[float, float, fl
 def pin_model(height_m: float = 1.0) -> Model:
     """The built-in example model (``path = "builtin:pin"``): a low-poly map pin standing on the
     origin, ``height_m`` tall along +z: a red ball on a white cone, 368 triangles."""
-    import trimesh  # noqa: PLC0415 - optional until a mesh is used
-
+    trimesh = _trimesh()
     ball_r = 0.28 * height_m
     cone = trimesh.creation.cone(radius=0.14 * height_m, height=0.72 * height_m, sections=24)
     cone.apply_transform(trimesh.transformations.rotation_matrix(math.pi, (1, 0, 0)))  # tip down
@@ -117,6 +118,14 @@ def pin_model(height_m: float = 1.0) -> Model:
 BUILTIN_MODELS = {"builtin:pin": pin_model}
 
 
+def _trimesh() -> ModuleType:
+    """trimesh, imported when a mesh is first used (0.4-1 s; the cube needs none), whole: a Ctrl-C meanwhile is
+    raised once it is loaded, not inside its imports, which would swallow it (:func:`~ar_anchor.lazy.import_held`)."""
+    trimesh = import_held("trimesh")
+    import_held("trimesh.creation")  # the pin's cone and ball (trimesh 4 imports it itself)
+    return trimesh
+
+
 def load_mesh(path: str | Path, rgb: tuple[float, float, float] | None = None) -> Model:
     """Read a mesh file (OBJ, PLY, STL, GLB/glTF, OFF) with trimesh, or a built-in model by name.
 
@@ -134,7 +143,7 @@ def load_mesh(path: str | Path, rgb: tuple[float, float, float] | None = None) -
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise ConfigError(f"mesh file {path}: unsupported format {path.suffix!r} (use {', '.join(MESH_SUFFIXES)})")
     try:
-        import trimesh  # noqa: PLC0415
+        trimesh = _trimesh()
     except ImportError as err:  # pragma: no cover - a declared dependency
         raise ConfigError(f"mesh file {path}: trimesh is not installed ({err})") from None
     try:

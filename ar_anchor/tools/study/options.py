@@ -39,6 +39,7 @@ STUDIES = ("outliers", "ransac", "jitter")
 
 def _float_list(text: str, option: str) -> list[float]:
     from .limits import MAX_VALUES
+
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
