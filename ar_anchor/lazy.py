@@ -66,7 +66,7 @@ def import_held(name: str) -> ModuleType:
     try:
         return importlib.import_module(name)
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
         if held:
             previous[held[0]](held[0], None)
