@@ -3,7 +3,7 @@ package), and rerun is imported only by ``viz/``.
 
 Layers, bottom to top (docs/architecture.md)::
 
-    errors, geometry, targets  <  camera  <  boards  <  config  <  synthetic  <  sources  <  track
+    errors, geometry, lazy, targets  <  camera  <  boards  <  config  <  synthetic  <  sources  <  track
       <  render, viz  <  run  <  tools, bench  <  cli
 
 Peers (render and viz, tools and bench) do not import each other.
@@ -21,6 +21,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "ar_anchor"
 LAYER = {
     "errors": 0,
     "geometry": 0,
+    "lazy": 0,
     "targets": 0,
     "camera": 1,
     "boards": 2,

@@ -19,6 +19,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import TrackerConfig
 from ..geometry import Pose
+from ..lazy import import_held
 from ..targets import TargetId, TrackState
 
 __all__ = ["OVERLAY_TRIANGLES", "run_overlay_benchmark", "write_overlay_report"]
@@ -28,7 +29,8 @@ OVERLAY_TRIANGLES = (12, 368, 1_280, 5_120, 20_480)
 
 def _sphere_mesh_file(directory: Path, triangles: int) -> Path:
     """An icosphere of about ``triangles`` faces (20 * 4^k), as a PLY file for the mesh overlay."""
-    import trimesh  # noqa: PLC0415
+    trimesh = import_held("trimesh")  # not inside its imports: a Ctrl-C there would be swallowed
+    import_held("trimesh.creation")
 
     subdivisions = max(0, round(math.log(max(triangles, 20) / 20, 4)))
     mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.5)

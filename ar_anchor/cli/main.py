@@ -91,14 +91,18 @@ def _preload(command: str | None) -> None:
     """Import what ``command`` needs (OpenCV, numpy, rerun, ...) now, while a signal still ends the process
     at once. A module that fails to import is left to the command, which reports it in its own words.
 
-    trimesh (the overlay meshes) too: its optional imports (scipy, ...) sit in ``except BaseException``
-    blocks, which would swallow a Ctrl-C raised while they load (a run that then ends with exit 0)."""
+    Not what only some runs need, nor what a run needs only after its first frame: trimesh (mesh files; the
+    default cube and the built-in pin need none), PyAV (video files) are imported where they are first used,
+    whole (:func:`~ar_anchor.lazy.import_held`: a Ctrl-C meanwhile is raised once they are loaded; trimesh's
+    optional imports catch ``BaseException`` and would swallow it); rerun by the thread that opens a run's
+    outputs while the tracker takes on the first frame (:meth:`~ar_anchor.run.run_outputs.RunOutputs.open`),
+    where no signal is raised."""
     try:
         if command in ("demo", "replay", "live", "bench", "batch"):
-            import trimesh  # noqa: F401
-            import trimesh.creation  # noqa: F401
-
             from ..run import loop  # noqa: F401
+
+            if command == "bench":  # its benchmarks log to rerun from this thread: loaded now, as before
+                from ..viz import recorder  # noqa: F401
         elif command == "calibrate":
             from ..tools import calibrate  # noqa: F401
         elif command == "markers":
@@ -106,6 +110,7 @@ def _preload(command: str | None) -> None:
         elif command == "map":
             from ..tools.map import command as map_command  # noqa: F401
         elif command == "study":
+            from ..run import outputs  # noqa: F401 - the --out check's
             from ..tools.study import command as study  # noqa: F401
         elif command == "export":
             import mcap_ros2.writer  # noqa: F401

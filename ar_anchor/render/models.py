@@ -8,16 +8,18 @@ centre, x right, y up, z out of the marker or board toward the viewer.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
 from ..errors import ConfigError
+from ..lazy import import_held
 
 __all__ = ["BUILTIN_MODELS", "Model", "cube_model", "load_mesh", "pin_model"]
 
+_DATA = Path(__file__).resolve().parents[1] / "data"  # package data (pyproject: ar_anchor data/*)
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 MAX_TRIANGLES = 200_000  # refuse larger meshes outright (decimate them first); see the README's budget
 
@@ -91,30 +93,27 @@ def cube_model(side_m: float, subdivisions: int = 1, rgb: tuple[float, float, fl
 
 def pin_model(height_m: float = 1.0) -> Model:
     """The built-in example model (``path = "builtin:pin"``): a low-poly map pin standing on the
-    origin, ``height_m`` tall along +z: a red ball on a white cone, 368 triangles."""
-    import trimesh  # noqa: PLC0415 - optional until a mesh is used
+    origin, ``height_m`` tall along +z: a red ball on a white cone, 368 triangles.
 
-    ball_r = 0.28 * height_m
-    cone = trimesh.creation.cone(radius=0.14 * height_m, height=0.72 * height_m, sections=24)
-    cone.apply_transform(trimesh.transformations.rotation_matrix(math.pi, (1, 0, 0)))  # tip down
-    cone.apply_translation((0, 0, 0.72 * height_m))
-    ball = trimesh.creation.icosphere(subdivisions=2, radius=ball_r)
-    ball.apply_translation((0, 0, height_m - ball_r))
-    parts = [(cone, (235, 235, 225)), (ball, (220, 40, 50))]
-    vertices, faces, colours = [], [], []
-    offset = 0
-    for mesh, rgb in parts:
-        vertices.append(np.asarray(mesh.vertices))
-        faces.append(np.asarray(mesh.faces) + offset)
-        colours.append(np.tile(np.asarray(rgb, np.float32), (len(mesh.faces), 1)))
-        offset += len(mesh.vertices)
-    faces_all = np.concatenate(faces).astype(np.int32)
-    return Model(
-        np.concatenate(vertices), faces_all, np.concatenate(colours), np.arange(len(faces_all), dtype=np.int32)
-    )
+    Read from ``ar_anchor/data/pin_*.npy`` (the cone and icosphere trimesh 5.2 builds, and the same model as
+    ``configs/models/pin.ply``; ``tests/render/test_overlay.py`` builds it again and compares): building
+    it here would import trimesh, 0.4-1 s of every run's start-up, since the default config puts it on
+    every board."""
+    vertices, faces, colours = (np.load(_DATA / f"pin_{name}.npy") for name in ("vertices", "faces", "face_colours"))
+    if height_m != 1.0:
+        vertices = vertices * height_m
+    return Model(vertices, faces, colours, np.arange(len(faces), dtype=np.int32))
 
 
 BUILTIN_MODELS = {"builtin:pin": pin_model}
+
+
+def _trimesh() -> ModuleType:
+    """trimesh, imported when a mesh is first used (0.4-1 s; the cube needs none), whole: a Ctrl-C meanwhile is
+    raised once it is loaded, not inside its imports, which would swallow it (:func:`~ar_anchor.lazy.import_held`)."""
+    trimesh = import_held("trimesh")
+    import_held("trimesh.creation")  # the pin's cone and ball (trimesh 4 imports it itself)
+    return trimesh
 
 
 def load_mesh(path: str | Path, rgb: tuple[float, float, float] | None = None) -> Model:
@@ -134,7 +133,7 @@ def load_mesh(path: str | Path, rgb: tuple[float, float, float] | None = None) -
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise ConfigError(f"mesh file {path}: unsupported format {path.suffix!r} (use {', '.join(MESH_SUFFIXES)})")
     try:
-        import trimesh  # noqa: PLC0415
+        trimesh = _trimesh()
     except ImportError as err:  # pragma: no cover - a declared dependency
         raise ConfigError(f"mesh file {path}: trimesh is not installed ({err})") from None
     try:

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import OutputError
+from ..lazy import import_held
 
 __all__ = ["SUPPORTED_EXTENSIONS", "AnnotatedVideoWriter"]
 
@@ -71,7 +72,7 @@ def _load_pyav() -> ModuleType:
         PyAV is not installed, or its FFmpeg build has no ``libx264`` encoder; the message
         says which.
     """
-    import av  # noqa: PLC0415 - optional dependency, only needed by runs that write a video
+    av = import_held("av")  # only runs that write a video need it; whole: a Ctrl-C waits until it is loaded
 
     try:
         av.codec.Codec(_H264_ENCODER, "w")

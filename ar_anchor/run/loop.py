@@ -279,6 +279,8 @@ def _track_offline(
         passes["done"] = []
 
         def keep(_frame: Frame, result: FrameResult, truth: dict[str, Any] | None, stages: dict[str, float]) -> int:
+            if not spool:
+                outputs.wait_open()  # opened while the first frame was tracked; a failure is said now, not at the end
             spool.append((result, truth, stages))
             return len(spool)
 

@@ -30,10 +30,11 @@ files left incomplete; ``summary.json`` lists them (``incomplete``).
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..camera import CameraModel
 from ..config import RecordingConfig
@@ -43,11 +44,13 @@ from ..render.overlay import OverlayRenderer
 from ..render.video import AnnotatedVideoWriter
 from ..sources.base import Frame, SourceInfo
 from ..track.tracker import FrameResult
-from ..viz.recorder import RerunRecorder
 from .options import RunOptions
 from .outputs import DiskFullError, PosesCsvWriter, RawVideoWriter, RunSummary, SummaryFile, is_disk_full
 from .paths import OutDirLock
 from .threads import OutputStage
+
+if TYPE_CHECKING:  # imported by the thread that opens the outputs (rerun: 0.3-0.5 s), see RunOutputs.open
+    from ..viz.recorder import RerunRecorder
 
 __all__ = ["RunOutputs", "close_in_order"]
 
@@ -106,6 +109,8 @@ class RunOutputs:
         self._video: AnnotatedVideoWriter | None = None
         self._stage: OutputStage | None = None
         self._stage_open = False
+        self._opening: threading.Thread | None = None  # opens the outputs (see open)
+        self._open_error: BaseException | None = None  # what failed to open them, not raised yet
         # what the closed outputs report in summary.json
         self._video_frames = 0
         self._recording_parts: list[str] = []
@@ -121,10 +126,44 @@ class RunOutputs:
         """Open the recording, ``poses.csv``, ``raw.mkv``, the annotated video and the output thread, in
         this order. ``renderer`` draws the overlays (None: none drawn); ``info``: the source's, for the
         output thread's policy (live: never make the tracker wait) and the recording's video reference.
-        The recording holds the overlay models (the viewer projects them onto the frame) unless ``--no-overlay``."""
-        options = self._options
+        The recording holds the overlay models (the viewer projects them onto the frame) unless ``--no-overlay``.
+
+        They are opened in a thread of its own, while the tracker takes on the first frame: importing rerun
+        and opening the recording take 0.3-0.5 s, which once came before the first frame was tracked.
+        :meth:`write` waits until they are open (:meth:`wait_open`), and raises what failed to open them,
+        as this method did (nothing written yet: ``poses.csv`` gets no row); :meth:`close` waits too. No
+        signal is raised in that thread: rerun is never imported halfway."""
         self._live = info.live
         self._renderer = renderer
+        self._opening = threading.Thread(
+            target=self._open_in_thread, args=(camera, recording, info, renderer), name="open-outputs"
+        )
+        self._opening.start()
+
+    def _open_in_thread(
+        self, camera: CameraModel, recording: RecordingConfig, info: SourceInfo, renderer: OverlayRenderer | None
+    ) -> None:
+        try:
+            self._open(camera, recording, info, renderer)
+        except BaseException as err:  # noqa: BLE001 - raised in the caller's thread by wait_open
+            self._open_error = err
+
+    def wait_open(self) -> None:
+        """Wait until :meth:`open`'s thread is done; raise (once) what failed to open the outputs (an offline
+        replay, which writes nothing until its last pass, calls it after its first frame)."""
+        if self._opening is not None:
+            self._opening.join()
+            self._opening = None
+        if self._open_error is not None:
+            err, self._open_error = self._open_error, None
+            raise err
+
+    def _open(
+        self, camera: CameraModel, recording: RecordingConfig, info: SourceInfo, renderer: OverlayRenderer | None
+    ) -> None:
+        from ..viz.recorder import RerunRecorder  # rerun: see open
+
+        options = self._options
         self._recorder = RerunRecorder(
             self.recording_rrd,
             camera=camera,
@@ -155,6 +194,7 @@ class RunOutputs:
         and its overlay, annotated video frame and rerun log queued for the output thread. Live, a frame
         the output thread has no room for is not drawn or logged (the tracker never waits for it),
         unless ``--video-out`` asks for a video of every tracked frame."""
+        self.wait_open()
         assert self._csv is not None and self._stage is not None, "open() the outputs first"
         try:
             if self._raw is not None:
@@ -209,6 +249,7 @@ class RunOutputs:
         try:
             close_in_order(
                 [
+                    self.wait_open,  # what failed to open is raised, and what did open is closed
                     self._stop_output_thread,
                     self._close_annotated_video,
                     self._close_raw_video,

@@ -6,11 +6,16 @@
 
 from __future__ import annotations
 
-from .base import Frame, FrameSource, SourceError, SourceInfo
-from .files import ImageFolderSource, VideoFileSource
-from .live import LiveSource
-from .open import DeviceSettings, open_source
-from .synthetic import SyntheticSource
+from typing import TYPE_CHECKING
+
+from ..lazy import lazy_exports
+
+if TYPE_CHECKING:  # imported on first use (below): a demo's synthetic frames need no PyAV, the parser nothing
+    from .base import Frame, FrameSource, SourceError, SourceInfo
+    from .files import ImageFolderSource, VideoFileSource
+    from .live import LiveSource
+    from .open import DeviceSettings, open_source
+    from .synthetic import SyntheticSource
 
 __all__ = [
     "DeviceSettings",
@@ -24,3 +29,15 @@ __all__ = [
     "VideoFileSource",
     "open_source",
 ]
+
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        ".base": ["Frame", "FrameSource", "SourceError", "SourceInfo"],
+        ".files": ["ImageFolderSource", "VideoFileSource"],
+        ".live": ["LiveSource"],
+        ".open": ["DeviceSettings", "open_source"],
+        ".synthetic": ["SyntheticSource"],
+    },
+    globals(),
+)

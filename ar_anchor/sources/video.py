@@ -21,15 +21,18 @@ import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import av
 import numpy as np
-from av.video.reformatter import VideoReformatter
 
 from ..camera import CameraModel, opencv_path_problem
 from ..errors import SourceError, printable
+from ..lazy import import_held
 from .base import ClosingSource, Frame, SourceInfo
 from .checks import source_file_stat
+
+if TYPE_CHECKING:  # PyAV (0.05-0.1 s) is imported when a video is opened: a demo or image folder needs none
+    import av
 
 __all__ = ["MAX_SIDECAR_BYTES", "MAX_TIMESTAMP_NS", "VideoFileSource", "read_timestamps_csv"]
 
@@ -115,6 +118,7 @@ class VideoFileSource(ClosingSource):
             raise
 
     def _open(self) -> av.container.InputContainer:
+        av = import_held("av")  # whole: a Ctrl-C while it loads is raised once it is loaded (ar_anchor.lazy)
         try:
             container = av.open(str(self.path), "r")
         except (av.FFmpegError, OSError, UnicodeError) as err:
@@ -128,6 +132,8 @@ class VideoFileSource(ClosingSource):
         return container
 
     def _setup(self) -> None:
+        from av.video.reformatter import VideoReformatter
+
         stream = self._container.streams.video[0]
         stream.thread_type = "AUTO"  # frame and slice threads, as OpenCV decodes
         self._stream = stream
@@ -153,6 +159,8 @@ class VideoFileSource(ClosingSource):
 
     def _estimated_count(self) -> int | None:
         """Duration x frame rate (what OpenCV reports as the frame count when the container has none)."""
+        import av
+
         if self._stream.duration is not None and self._time_base > 0:
             seconds = self._stream.duration * self._time_base
         elif self._container.duration is not None:
@@ -166,6 +174,8 @@ class VideoFileSource(ClosingSource):
         """Decoded frames, up to the first packet the container cannot read or the decoder refuses: the frames
         after it would be built on broken references, so the stream ends there (and counts as damaged), as
         OpenCV ends it."""
+        import av
+
         packets = self._container.demux(self._stream)
         while True:
             try:

@@ -61,6 +61,7 @@ from ..camera import CameraModel
 from ..config import dictionary_id
 from ..errors import SourceError
 from ..geometry import Pose, marker_corners_in_marker
+from ..lazy import import_held
 from .scene import SyntheticScene, board_marker_poses
 
 __all__ = ["H264RoundTrip", "Renderer", "pinhole_canvas"]
@@ -321,7 +322,7 @@ class H264RoundTrip:
     ``encode`` return its packet at once, so the round trip keeps frame order and count exactly."""
 
     def __init__(self, width: int, height: int, fps: float, kbps: float, gop: int) -> None:
-        import av  # noqa: PLC0415  (PyAV: only needed for h264 clips)
+        av = import_held("av")  # PyAV: only needed for h264 clips; whole: a Ctrl-C waits until it is loaded
 
         self._av = av
         self.encoder = av.CodecContext.create("libx264", "w")

@@ -46,12 +46,15 @@ def test_the_entry_point_imports_nothing_heavy_before_its_signal_handling():
     assert result.stdout.strip() == "[]"
 
 
-def test_a_run_command_loads_trimesh_before_a_signal_becomes_an_interrupt():
-    # trimesh's optional imports catch BaseException: a Ctrl-C raised while they load was swallowed (a
-    # SIGTERM 0.84-1.14 s into a demo ended it with exit 0); they load while a signal still ends the process
-    code = "import sys; from ar_anchor.cli import main; main._preload('demo'); print('trimesh.creation' in sys.modules)"
+def test_a_run_command_preloads_the_tracker_but_not_trimesh_pyav_or_rerun():
+    # the tracker loads while a signal still ends the process; trimesh (mesh files) and PyAV (video files)
+    # where first used, whole (trimesh's optional imports catch BaseException and swallowed a Ctrl-C:
+    # tests/test_lazy.py); rerun in the thread that opens the outputs (tests/cli/test_startup_imports.py)
+    modules = "('ar_anchor.run.loop', 'ar_anchor.track.tracker', 'cv2', 'trimesh', 'scipy', 'av', 'rerun')"
+    code = "import sys; from ar_anchor.cli import main; main._preload('demo')"
+    code += f"; print([m in sys.modules for m in {modules}])"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
-    assert result.stdout.strip() == "True"
+    assert result.stdout.strip() == "[True, True, True, False, False, False, False]"
 
 
 def test_signals_end_the_process_at_once_before_and_after_the_command_and_interrupt_it_during():

@@ -3,7 +3,8 @@ listen on localhost.
 
 1. A static AST walk over every module of the package: no ``eval``/``exec``/``compile``, no pickle,
    marshal, shelve or unsafe YAML loaders, no ``shell=True``, ``os.system`` or ``os.popen``, no
-   ``np.load(allow_pickle=True)``, no imports by computed name (one audited exception), pickle only in
+   ``np.load(allow_pickle=True)``, no imports by computed name (audited exceptions: the lazy exports and
+   ``lazy.import_held``, whose module names are literals at every call), pickle only in
    the offline replay's spool (audited: its own unnamed temporary file, read back by an unpickler that
    admits the package's classes and numpy arrays only, tested below). Plus files
    written to look like code (YAML ``!!python`` tags, a TOML with a Python payload) stay inert.
@@ -78,6 +79,9 @@ FORBIDDEN_IMPORTS = {"pickle", "cPickle", "_pickle", "marshal", "shelve", "dill"
 # (module, enclosing function) -> why a dynamic import there is safe
 AUDITED = {
     ("ar_anchor/__init__.py", "__getattr__"): "lazy exports: the module name comes from the fixed _EXPORTS table",
+    ("ar_anchor/lazy.py", "__getattr__"): "lazy exports: the module comes from the package's fixed table (every "
+    "lazy_exports call passes a literal one: checked below)",
+    ("ar_anchor/lazy.py", "import_held"): "every import_held call passes a literal module name (checked below)",
 }
 
 
@@ -160,6 +164,15 @@ class _Finder(ast.NodeVisitor):
                 self.report(node, f"calls {name}: {why}")
         if name in ("importlib.import_module",) and not isinstance(node.args[0], ast.Constant) and not audited:
             self.report(node, "imports a module by computed name")
+        if name.rsplit(".", 1)[-1] == "import_held" and not (node.args and isinstance(node.args[0], ast.Constant)):
+            self.report(node, "import_held of a computed name")
+        if name.rsplit(".", 1)[-1] == "lazy_exports":
+            table = node.args[1] if len(node.args) > 1 else None
+            if not isinstance(table, ast.Dict) or not all(
+                isinstance(key, ast.Constant) and isinstance(value, ast.List | ast.Tuple)
+                for key, value in zip(table.keys, table.values)
+            ):
+                self.report(node, "lazy_exports of a computed table")
         keywords = {k.arg: k.value for k in node.keywords if k.arg}
         if name.startswith("subprocess.") or name.startswith("asyncio.create_subprocess"):
             shell = keywords.get("shell")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -206,6 +207,39 @@ def test_cube_model_is_closed_with_outward_normals():
         assert mesh.is_watertight and mesh.is_winding_consistent
         assert mesh.volume == pytest.approx(0.001)  # positive: normals point out
         assert model.vertices[:, 2].min() == 0.0  # stands on the marker plane
+
+
+def _pin_built_by_trimesh(height_m: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pin as ar_anchor built it with trimesh before it was stored (ar_anchor/data/pin_*.npy)."""
+    import trimesh
+
+    ball_r = 0.28 * height_m
+    cone = trimesh.creation.cone(radius=0.14 * height_m, height=0.72 * height_m, sections=24)
+    cone.apply_transform(trimesh.transformations.rotation_matrix(math.pi, (1, 0, 0)))  # tip down
+    cone.apply_translation((0, 0, 0.72 * height_m))
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=ball_r)
+    ball.apply_translation((0, 0, height_m - ball_r))
+    parts = [(cone, (235, 235, 225)), (ball, (220, 40, 50))]
+    vertices, faces, colours = [], [], []
+    offset = 0
+    for mesh, rgb in parts:
+        vertices.append(np.asarray(mesh.vertices))
+        faces.append(np.asarray(mesh.faces) + offset)
+        colours.append(np.tile(np.asarray(rgb, np.float32), (len(mesh.faces), 1)))
+        offset += len(mesh.vertices)
+    return np.concatenate(vertices), np.concatenate(faces).astype(np.int32), np.concatenate(colours)
+
+
+def test_the_stored_builtin_pin_is_the_model_trimesh_builds():
+    # stored so that the default config (the pin on every board) does not import trimesh at start-up
+    vertices, faces, colours = _pin_built_by_trimesh()
+    pin = pin_model()
+    np.testing.assert_array_equal(pin.vertices, vertices)
+    np.testing.assert_array_equal(pin.faces, faces)
+    np.testing.assert_array_equal(pin.face_colours, colours)
+    np.testing.assert_array_equal(pin.facets, np.arange(368))
+    assert (pin.vertices.dtype, pin.faces.dtype, pin.face_colours.dtype) == (np.float64, np.int32, np.float32)
+    np.testing.assert_allclose(pin_model(0.5).vertices, _pin_built_by_trimesh(0.5)[0], atol=1e-15)
 
 
 def test_builtin_pin_and_the_shipped_file_are_the_same_model():

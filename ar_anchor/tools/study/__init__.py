@@ -39,10 +39,23 @@ together once all are complete and removed otherwise; files of studies completed
 
 from __future__ import annotations
 
-from .command import run_study
-from .jitter import JitterSetup, run_jitter
-from .options import DEFAULT_OUT, STUDIES, configure_parser
-from .pnp import Correspondences, PnPSetup, PnPTrial, make_correspondences, run_outliers, run_ransac, solve_trial
+from typing import TYPE_CHECKING
+
+from ...lazy import lazy_exports
+
+if TYPE_CHECKING:  # imported on first use (below): the command line's options must not load matplotlib
+    from .command import run_study
+    from .jitter import JitterSetup, run_jitter
+    from .options import DEFAULT_OUT, STUDIES, configure_parser
+    from .pnp import (
+        Correspondences,
+        PnPSetup,
+        PnPTrial,
+        make_correspondences,
+        run_outliers,
+        run_ransac,
+        solve_trial,
+    )
 
 __all__ = [
     "DEFAULT_OUT",
@@ -59,3 +72,22 @@ __all__ = [
     "run_study",
     "solve_trial",
 ]
+
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        ".command": ["run_study"],
+        ".jitter": ["JitterSetup", "run_jitter"],
+        ".options": ["DEFAULT_OUT", "STUDIES", "configure_parser"],
+        ".pnp": [
+            "Correspondences",
+            "PnPSetup",
+            "PnPTrial",
+            "make_correspondences",
+            "run_outliers",
+            "run_ransac",
+            "solve_trial",
+        ],
+    },
+    globals(),
+)

@@ -9,7 +9,6 @@ import tempfile
 from pathlib import Path
 
 from ...errors import InputError, OutputError, printable
-from ...run.outputs import check_not_a_file
 
 __all__ = ["DEFAULT_OUT", "StudyFiles", "check_out", "create_out"]
 
@@ -20,6 +19,8 @@ def check_out(text: str | os.PathLike[str] | None) -> Path:
     """The ``--out`` directory (default :data:`DEFAULT_OUT`), checked without creating anything: an
     :class:`InputError` for an empty or non-UTF-8 path (the rerun recording cannot be named so) or a
     file in the way."""
+    from ...run.outputs import check_not_a_file  # not at import: the command line's parser reads DEFAULT_OUT
+
     if text is None:
         return DEFAULT_OUT
     if not os.fspath(text):

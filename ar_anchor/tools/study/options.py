@@ -8,15 +8,15 @@ import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from ...camera import CameraModel
-from ...config import load_config
 from ...errors import CameraError, InputError
 from .files import DEFAULT_OUT
-from .jitter import SETTLE_FRAMES, JitterSetup
-from .limits import MAX_VALUES, check_camera, check_distances, in_range
-from .pnp import PnPSetup
+
+if TYPE_CHECKING:  # imported where used: the parser (`ar-anchor --help`) must not load OpenCV and numpy
+    from ...camera import CameraModel
+    from .jitter import JitterSetup
+    from .pnp import PnPSetup
 
 __all__ = [
     "DEFAULT_OUT",
@@ -38,6 +38,8 @@ STUDIES = ("outliers", "ransac", "jitter")
 
 
 def _float_list(text: str, option: str) -> list[float]:
+    from .limits import MAX_VALUES
+
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
@@ -118,6 +120,9 @@ def check(condition: bool, message: str) -> None:
 
 def pnp_setup(args: argparse.Namespace, camera: CameraModel | None) -> PnPSetup:
     """The outliers/ransac problem from the options, checked."""
+    from .limits import in_range
+    from .pnp import PnPSetup
+
     in_range("--points", args.points)
     in_range("--pixel-noise", args.pixel_noise)
     in_range("--iterations", args.iterations)
@@ -129,6 +134,9 @@ def pnp_setup(args: argparse.Namespace, camera: CameraModel | None) -> PnPSetup:
 def camera_from_args(args: argparse.Namespace, study: str) -> CameraModel | None:
     """The ``--camera`` file's model, checked for the ``study`` (``jitter`` or ``pnp``), or None (each
     study's own default camera)."""
+    from ...camera import CameraModel
+    from .limits import check_camera
+
     if args.camera is None:
         return None
     try:
@@ -153,6 +161,8 @@ def outliers_settings(args: argparse.Namespace, defaults: Defaults, setup: PnPSe
 def ransac_settings(args: argparse.Namespace, defaults: Defaults, setup: PnPSetup) -> dict[str, Any]:
     """:func:`~.pnp.run_ransac`'s keyword arguments from the options, checked (the ``--threshold`` is
     always among the thresholds)."""
+    from .limits import in_range
+
     thresholds = sorted(set(_float_list(args.thresholds, "--thresholds")) | {args.threshold})
     for threshold in thresholds:
         in_range("--thresholds", threshold, what="must all be")
@@ -177,6 +187,8 @@ def _contamination(percent: float, option: str, points: int) -> float:
 
 
 def _seeds(args: argparse.Namespace, default: int) -> int:
+    from .limits import in_range
+
     seeds = default if args.seeds is None else args.seeds
     in_range("--seeds", seeds)
     return seeds
@@ -184,6 +196,10 @@ def _seeds(args: argparse.Namespace, default: int) -> int:
 
 def jitter_setup(args: argparse.Namespace, defaults: Defaults, camera: CameraModel | None) -> JitterSetup:
     """The jitter scene and tracker config from the options, checked."""
+    from ...config import load_config
+    from .jitter import SETTLE_FRAMES, JitterSetup
+    from .limits import check_distances, in_range
+
     frames = defaults.frames if args.frames is None else args.frames
     in_range("--frames", frames, why=f"the first {SETTLE_FRAMES} are the filter's settling time")
     text = defaults.distances if args.distances is None else args.distances
