@@ -30,9 +30,9 @@ class CountingTracker(Tracker):
         super().__init__(*args, **kwargs)
         self.processed = 0
 
-    def process(self, frame):
+    def track(self, detected):  # (process is track(detect(frame)); a replay detects ahead and calls track)
         self.processed += 1
-        return super().process(frame)
+        return super().track(detected)
 
 
 def test_the_recording_is_opened_off_the_main_thread_and_the_run_is_the_same(tmp_path, monkeypatch):
