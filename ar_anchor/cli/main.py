@@ -100,6 +100,15 @@ def _preload(command: str | None) -> None:
     try:
         if command in ("demo", "replay", "live", "bench", "batch"):
             from ..run import loop  # noqa: F401
+            from ..tools.export import run  # noqa: F401 - the camera summary, earlier exports cleared
+            from ..track.kernels import compiled_refine
+
+            compiled_refine()  # the pose stage's compiled kernel, loaded once
+            import numpy.ma  # noqa: F401 - numpy 2 imports these on first use, which would be mid-run
+            import numpy.random  # noqa: F401
+
+            from ..sources import open as open_source  # noqa: F401 - files, cameras, the synthetic scene
+            from ..sources import synthetic as synthetic_source  # noqa: F401
 
             if command == "bench":  # its benchmarks log to rerun from this thread: loaded now, as before
                 from ..viz import recorder  # noqa: F401
@@ -152,7 +161,11 @@ def _run_command(argv: Sequence[str] | None, signals: terminal.Signals) -> int:
     except KeyboardInterrupt as err:
         print(f"ar-anchor: interrupted; {terminal.interrupted_outputs(err)}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except Exception as err:  # a bug: say so in one line, show the traceback only when asked
+    except Exception as err:
+        if _interrupted_within(err):  # a signal inside a library's code, which wrapped it (e.g. a RuntimeError)
+            print(f"ar-anchor: interrupted; {terminal.interrupted_outputs(err)}", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        # a bug: say so in one line, show the traceback only when asked
         import logging
 
         logging.getLogger("ar_anchor").debug("internal error", exc_info=True)
@@ -161,6 +174,19 @@ def _run_command(argv: Sequence[str] | None, signals: terminal.Signals) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
+
+
+def _interrupted_within(err: BaseException) -> bool:
+    """Whether ``err`` was caused by a ``KeyboardInterrupt`` (Ctrl-C, SIGTERM) that code on the way wrapped in
+    an error of its own (Python's class creation turns one into a ``RuntimeError``)."""
+    seen: set[int] = set()
+    cause: BaseException | None = err
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -78,6 +78,54 @@ def test_the_interrupted_line_says_where_the_outputs_are():
     assert terminal.interrupted_outputs(interrupt) == "outputs written so far in recordings/live-1\\n/ are complete"
 
 
+_MAIN_THREAD_IMPORTS = """
+import sys, threading
+from ar_anchor.cli import terminal
+running, seen = terminal.Signals.running, []
+def traced(self):
+    sys.meta_path.insert(0, Finder())
+    return running(self)
+class Finder:
+    def find_spec(self, name, path, target=None):
+        if name not in sys.modules and threading.current_thread() is threading.main_thread():
+            seen.append(name)
+terminal.Signals.running = traced
+from ar_anchor.cli.main import main
+main(sys.argv[1:])
+print(sorted({name.split(".")[0] for name in seen}))
+"""
+
+
+@pytest.mark.parametrize("command", [["demo", "--frames", "2"], ["live", "--device", "synthetic", "--max-frames", "2"]])
+def test_a_run_imports_nothing_in_the_main_thread_once_a_signal_is_an_interrupt(command, tmp_path):
+    # an import that a Ctrl-C cuts short can end in anything: numpy 2's own lazy submodules (numpy.random) or a
+    # class body turned it into "internal error: RuntimeError: Error calling __set_name__" (seen on a busy machine)
+    code = [sys.executable, "-c", _MAIN_THREAD_IMPORTS, "-q", *command, "--out", "out"]
+    result = subprocess.run(code, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, describe(result)
+    assert result.stdout.strip().splitlines()[-1] == "[]", describe(result)  # PyAV, trimesh: imported held
+
+
+def test_an_interrupt_that_a_library_wrapped_is_still_an_interrupt():
+    from ar_anchor.cli.main import _interrupted_within
+
+    class Breaks:
+        def __set_name__(self, owner, name):
+            raise KeyboardInterrupt("signal 15")
+
+    with pytest.raises(RuntimeError) as wrapped:
+        type("Row", (), {"field": Breaks()})
+    assert _interrupted_within(wrapped.value)
+    assert not _interrupted_within(RuntimeError("a bug"))
+    try:
+        try:
+            raise ValueError("first")
+        except ValueError as first:
+            raise RuntimeError("second") from first
+    except RuntimeError as chained:
+        assert not _interrupted_within(chained)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 @pytest.mark.parametrize("after_s", [0.15, 0.3, 0.45, 0.7, 1.0])
