@@ -70,7 +70,7 @@ def test_a_broken_source_still_hands_out_the_frame_before():
     tracker = Tracker(config, camera)
     seen = []
     with pytest.raises(OSError, match="decoder broke"):
-        for frame, extra, detected in detected_ahead(tracker, broken()):
+        for _frame, extra, detected in detected_ahead(tracker, broken()):
             seen.append(extra)
             tracker.track(detected)
     assert seen == [0, 1, 2, 3]
