@@ -104,8 +104,9 @@ def _preload(command: str | None) -> None:
             from ..track.kernels import compiled_refine
 
             compiled_refine()  # the pose stage's compiled kernel, loaded once
-            import numpy.ma  # noqa: F401 - numpy 2 imports these on first use, which would be mid-run
-            import numpy.random  # noqa: F401
+            if command in ("demo", "live", "bench"):  # the synthetic scene's: numpy 2 imports them on first use
+                import numpy.ma  # noqa: F401
+                import numpy.random  # noqa: F401
 
             from ..sources import open as open_source  # noqa: F401 - files, cameras, the synthetic scene
             from ..sources import synthetic as synthetic_source  # noqa: F401
