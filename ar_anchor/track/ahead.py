@@ -38,7 +38,7 @@ def detected_ahead(
                 frame, extra = next(frames)
             except StopIteration:
                 break
-            except Exception:  # the source broke: the frame before is still handed out first (a Ctrl-C is not held)
+            except BaseException:  # (the source broke: the frame before is still handed out first)
                 if pending is not None:
                     yield pending[0], pending[1], pending[2].result()
                 raise
