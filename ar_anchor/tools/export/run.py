@@ -272,6 +272,8 @@ def _export(
             bag = McapExportWriter(work / MCAP, camera, names)
 
         def take(group: list[PoseRow]) -> None:
+            for row in group:  # two targets of one export name: refused at the row of the second
+                names(row.target, f"{printable(poses_csv)}: line {row.line}, column target")
             counts.frames += 1
             counts.rows += len(group)
             if csv_writer is not None:

@@ -1,0 +1,170 @@
+"""`ar-anchor export` on hostile run folders (issue 34, the third ring): a real small run (a 2-frame demo, made
+once per module) whose poses.csv or --out is then damaged: one line naming the file and row, exit 2, nothing of
+the user's replaced, no internal error."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+import tracemalloc
+from pathlib import Path
+
+import pytest
+
+from ar_anchor.run.outputs import POSES_CSV_HEADER
+from ar_anchor.tools.export.poses import MAX_LINE_CHARS
+from tests.helpers import assert_clean_exit, error_lines, run_main
+
+
+@pytest.fixture(scope="module")
+def real_run(tmp_path_factory) -> Path:
+    """A run folder `demo --frames 2` wrote (poses.csv with seven targets a frame, summary.json with its camera)."""
+    out = tmp_path_factory.mktemp("real") / "run"
+    result = run_main(["-q", "demo", "--frames", "2", "--out", str(out)])
+    assert result.code == 0, result.describe()
+    return out
+
+
+@pytest.fixture
+def run(real_run, tmp_path) -> Path:
+    """A copy of the real run, free to damage."""
+    copy = tmp_path / "run"
+    shutil.copytree(real_run, copy)
+    return copy
+
+
+def _rows(run: Path) -> list[list[str]]:
+    with (run / "poses.csv").open(newline="") as f:
+        return list(csv.reader(f))
+
+
+def _write_rows(run: Path, rows: list[list[str]]) -> None:
+    with (run / "poses.csv").open("w", newline="") as f:
+        csv.writer(f, lineterminator="\n").writerows(rows)
+
+
+def _set(run: Path, row: int, column: str, value: str) -> None:
+    rows = _rows(run)
+    rows[row][POSES_CSV_HEADER.index(column)] = value
+    _write_rows(run, rows)
+
+
+def _one_error(result) -> str:
+    """The run's one error line (exit 2, nothing else on stderr, no internal error)."""
+    assert_clean_exit(result)
+    assert result.code == 2, result.describe()
+    lines = error_lines(result.stderr)
+    assert len(lines) == 1 and result.stderr.strip() == lines[0], result.describe()
+    return lines[0]
+
+
+def _nothing_exported(run: Path) -> None:
+    assert sorted(p.name for p in run.iterdir()) == ["poses.csv", "recording.rrd", "summary.json"]
+
+
+def test_a_line_of_200m_commas_is_refused_after_the_line_limit_without_holding_it(run):
+    # given a poses.csv with a line of 20 M commas (the issue's 200 M took 1.87 GB before it was refused)
+    with (run / "poses.csv").open("a") as f:
+        f.write("," * 20_000_000 + "\n")
+    lines = len(_rows(run)[:-1])
+    # when exported (memory traced)
+    tracemalloc.start()
+    try:
+        result = run_main(["-q", "export", str(run)])
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    # then one line naming the file and the line, and the memory is the limit's, not the line's
+    message = _one_error(result)
+    assert message == (
+        f"ar-anchor: error: {run / 'poses.csv'}: line {lines + 1}: longer than {MAX_LINE_CHARS} characters: "
+        "not a row of a poses.csv"
+    )
+    assert peak < 8_000_000, f"peak {peak / 1e6:.1f} MB"
+    _nothing_exported(run)
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "expected"),
+    [
+        (
+            "rvec_x",
+            "1e200",
+            "line 2, column rvec_x: a rotation vector of 1e+200 rad is no rotation ar-anchor writes (at most pi; "
+            "refused beyond 2 pi)",
+        ),
+        (
+            "tvec_z",
+            "1e300",
+            "line 2, column tvec_x: a translation of 1e+300 m is no pose ar-anchor writes (refused beyond 1e+06 m)",
+        ),
+        (
+            "timestamp_s",
+            "1e30",
+            "line 2, column timestamp_s: '1e30' s is beyond the last time a ROS 2 stamp holds (2147483647 s)",
+        ),
+        ("timestamp_s", "-1.0", "line 2, column timestamp_s: a negative time: '-1.0' s (a run's times start at 0)"),
+    ],
+    ids=["rvec-1e200", "tvec-1e300", "time-1e30", "time-negative"],
+)
+def test_values_no_run_writes_are_one_line_naming_the_file_line_and_column(run, column, value, expected):
+    # given a real run's poses.csv with one value no run writes (in its first frame: every row of it)
+    rows = _rows(run)
+    for row in rows[1:]:
+        if row[0] == rows[1][0]:
+            row[POSES_CSV_HEADER.index(column)] = value
+    _write_rows(run, rows)
+    # when exported: one line naming the file, line and column, exit 2, nothing written
+    assert _one_error(run_main(["-q", "export", str(run)])) == f"ar-anchor: error: {run / 'poses.csv'}: {expected}"
+    _nothing_exported(run)
+
+
+def test_time_that_goes_backwards_is_refused_at_the_row(run):
+    rows = _rows(run)
+    second = [i for i, row in enumerate(rows) if row[0] == "1"]
+    for i in second:
+        rows[i][1] = "0.000000000"
+    rows[1 : second[0]] = [[*row[:1], "0.010000000", *row[2:]] for row in rows[1 : second[0]]]
+    _write_rows(run, rows)
+    assert _one_error(run_main(["-q", "export", str(run)])) == (
+        f"ar-anchor: error: {run / 'poses.csv'}: line {second[0] + 1}, column timestamp_s: time goes backwards: "
+        "frame 1 at 0.000000000 s is before frame 0 at 0.010000000 s"
+    )
+    _nothing_exported(run)
+
+
+def test_the_same_target_twice_in_one_frame_is_refused_at_the_second_row(run):
+    rows = _rows(run)
+    rows.insert(3, list(rows[1]))
+    _write_rows(run, rows)
+    assert _one_error(run_main(["-q", "export", str(run)])) == (
+        f"ar-anchor: error: {run / 'poses.csv'}: line 4, column target: {rows[1][2]} twice in frame 0 (line 2 "
+        "too): one pose per target and frame"
+    )
+    _nothing_exported(run)
+
+
+def test_two_targets_of_one_export_name_are_bad_input_naming_the_row(run):
+    # given two boards whose names become the same file name and frame id (a space and an underscore)
+    rows = _rows(run)
+    rows[1][2] = "board:my desk"
+    rows.insert(2, [*rows[1][:2], "board:my_desk", *rows[1][3:]])
+    _write_rows(run, rows)
+    assert _one_error(run_main(["-q", "export", str(run)])) == (
+        f"ar-anchor: error: {run / 'poses.csv'}: line 3, column target: targets 'board:my desk' and "
+        "'board:my_desk' would both be exported as 'board_my_desk': rename one of the boards"
+    )
+    _nothing_exported(run)
+
+
+def test_a_utf8_byte_order_mark_is_read_as_nothing(run):
+    # given the run's poses.csv saved by a spreadsheet as "CSV UTF-8" (a byte order mark first)
+    text = (run / "poses.csv").read_text()
+    (run / "poses.csv").write_text("\ufeff" + text)
+    # when exported: it is read as the file without the mark
+    result = run_main(["-q", "export", str(run), "--formats", "csv"])
+    assert result.code == 0, result.describe()
+    with (run / "poses_ext.csv").open(newline="") as f:
+        exported = list(csv.DictReader(f))
+    assert [r["frame"] for r in exported] == [r[0] for r in _rows(run)[1:]]
+    assert list(exported[0])[0] == "frame"
