@@ -168,3 +168,70 @@ def test_a_utf8_byte_order_mark_is_read_as_nothing(run):
         exported = list(csv.DictReader(f))
     assert [r["frame"] for r in exported] == [r[0] for r in _rows(run)[1:]]
     assert list(exported[0])[0] == "frame"
+
+
+# ------------------------------------------------------------------- never replace a file export did not write
+def test_export_out_holding_the_users_files_is_refused_and_they_stay(run, tmp_path):
+    # given an --out folder with the user's own run.mcap and poses_ext.csv (no export wrote them)
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "run.mcap").write_bytes(b"my bag")
+    (out / "poses_ext.csv").write_text("my table\n")
+    # when exported into it: one line naming them, exit 2, both untouched, nothing else written
+    assert _one_error(run_main(["-q", "export", str(run), "--out", str(out)])) == (
+        f"ar-anchor: error: --out {out}: holds poses_ext.csv, run.mcap, which no ar-anchor export wrote; the "
+        "export would overwrite them: move them or give another --out"
+    )
+    assert (out / "run.mcap").read_bytes() == b"my bag" and (out / "poses_ext.csv").read_text() == "my table\n"
+    assert sorted(p.name for p in out.iterdir()) == ["poses_ext.csv", "run.mcap"]
+
+
+def test_a_users_tum_file_of_an_exported_targets_name_refuses_the_whole_export(run, tmp_path):
+    out = tmp_path / "mine"
+    (out / "tum").mkdir(parents=True)
+    (out / "tum" / "marker_0.txt").write_text("my trajectory\n")
+    assert _one_error(run_main(["-q", "export", str(run), "--out", str(out)])) == (
+        f"ar-anchor: error: --out {out}: holds tum/marker_0.txt, which no ar-anchor export wrote; the export would "
+        "overwrite it: move it or give another --out"
+    )
+    # nothing moved into place (the check comes before the first file), no temporary left
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["tum", "tum/marker_0.txt"]
+    assert (out / "tum" / "marker_0.txt").read_text() == "my trajectory\n"
+
+
+def test_an_export_replaces_its_own_files_but_not_one_the_user_changed_since(run, tmp_path):
+    out = tmp_path / "x"
+    assert run_main(["-q", "export", str(run), "--out", str(out)]).code == 0
+    assert run_main(["-q", "export", str(run), "--out", str(out)]).code == 0  # its own: replaced
+    with (out / "run.mcap").open("ab") as f:
+        f.write(b"the user's notes")
+    edited = (out / "run.mcap").read_bytes()
+    assert _one_error(run_main(["-q", "export", str(run), "--out", str(out)])).endswith(
+        "holds run.mcap, which no ar-anchor export wrote; the export would overwrite it: move it or give another --out"
+    )
+    assert (out / "run.mcap").read_bytes() == edited
+    # and without the mcap, the other formats are written
+    assert run_main(["-q", "export", str(run), "--out", str(out), "--formats", "csv,tum"]).code == 0
+
+
+def test_a_run_into_a_folder_holding_the_users_exports_keeps_them(tmp_path):
+    # given a folder holding the user's run.mcap and poses_ext.csv (a run's start removed them as old exports)
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "run.mcap").write_bytes(b"my bag")
+    (out / "poses_ext.csv").write_text("my table\n")
+    # when a run writes into it (no --export): they stay
+    result = run_main(["-q", "demo", "--frames", "2", "--out", str(out)])
+    assert result.code == 0, result.describe()
+    assert (out / "run.mcap").read_bytes() == b"my bag" and (out / "poses_ext.csv").read_text() == "my table\n"
+    # a run into a folder holding another run's exports (no run wrote the folder) keeps them too
+    exported = tmp_path / "o2"
+    assert run_main(["-q", "export", str(out), "--out", str(exported)]).code == 0
+    assert run_main(["-q", "demo", "--frames", "2", "--out", str(exported)]).code == 0
+    assert {"run.mcap", "poses_ext.csv", "tum"} < {p.name for p in exported.iterdir()}
+    # and a run into a run's folder removes the export of it (it belongs to the poses.csv the run replaces)
+    run_dir = tmp_path / "r"
+    assert run_main(["-q", "demo", "--frames", "2", "--out", str(run_dir)]).code == 0
+    assert run_main(["-q", "export", str(run_dir)]).code == 0
+    assert run_main(["-q", "demo", "--frames", "2", "--out", str(run_dir)]).code == 0
+    assert sorted(p.name for p in run_dir.iterdir()) == ["poses.csv", "recording.rrd", "summary.json"]

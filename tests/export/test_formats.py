@@ -199,26 +199,28 @@ def test_tum_files_hold_the_camera_in_each_target_frame(tmp_path):
 
 
 def test_a_new_export_replaces_the_old_files_and_a_failed_one_leaves_them(tmp_path):
-    # given an exported run, and a stale TUM file of a target no longer in it
+    # given a run exported when it had a target marker:99 (now marker:7), and files of the user's in tum/
     run = write_run(tmp_path / "run")
-    export_run(run.path, formats=("csv", "tum"))
-    (run.path / "tum" / "marker_99.txt").write_text("stale")
-    (run.path / "tum" / "notes.txt").write_text("the user's")
-    before = (run.path / "poses_ext.csv").read_text()
-    # when poses.csv is damaged and exported again
     poses = run.path / "poses.csv"
     good = poses.read_text()
+    poses.write_text(good.replace("marker:7", "marker:99"))
+    export_run(run.path, formats=("csv", "tum"))
+    assert (run.path / "tum" / "marker_99.txt").is_file()
+    (run.path / "tum" / "notes.txt").write_text("the user's")
+    (run.path / "tum" / "marker_5.txt").write_text("the user's, named like an export")
+    before = (run.path / "poses_ext.csv").read_text()
+    # when poses.csv is damaged and exported again
     poses.write_text(good.replace(",tracked,", ",lost,", 1))
     with pytest.raises(InputError):
         export_run(run.path, formats=("csv", "tum"))
     # then the previous export is intact and no temporary folder is left
     assert (run.path / "poses_ext.csv").read_text() == before
     assert not [p for p in run.path.iterdir() if p.name.startswith(".export")]
-    # and when exported from the good file again, the stale TUM file is gone (the user's stays)
+    # and when exported from the good file again, the old export's TUM file is gone (the user's files stay)
     poses.write_text(good)
     export_run(run.path, formats=("tum",))
     names = sorted(p.name for p in (run.path / "tum").iterdir())
-    assert names == ["board_my_desk.txt", "marker_0.txt", "marker_7.txt", "notes.txt"]
+    assert names == ["board_my_desk.txt", "marker_0.txt", "marker_5.txt", "marker_7.txt", "notes.txt"]
 
 
 def test_the_camera_comes_from_summary_json_or_camera_yml(tmp_path):
