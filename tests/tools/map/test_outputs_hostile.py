@@ -125,3 +125,25 @@ def test_a_failed_map_leaves_no_folder_and_no_lock(tmp_path, scene):
     result = run_main(["-q", "map", str(blank), *options, "--out", str(out), "--rrd", str(rrd)])
     assert result.code == 2, result.describe()
     assert not (tmp_path / "new").exists() and not (tmp_path / "other").exists()
+
+
+def test_a_layout_that_cannot_be_written_is_one_line_naming_it(tmp_path, scene, monkeypatch):
+    # given a disk that fills as the TOML layout is put in place
+    video, options = scene
+    out = tmp_path / "m" / "layout.yml"
+    replace = os.replace
+
+    def full(source, target, *args, **kwargs):
+        if str(target).endswith("layout.toml"):
+            raise OSError(28, "No space left on device", str(target))
+        return replace(source, target, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", full)
+    result = run_main(["-q", "map", str(video), *options, "--out", str(out)])
+    # then one line naming that file, exit 1, no temporary file, no lock and no recording left
+    assert_clean_exit(result)
+    assert result.code == 1, result.describe()
+    assert error_lines(result.stderr) == [
+        f"ar-anchor: error: --out {out.with_suffix('.toml')}: cannot write (No space left on device)"
+    ]
+    assert sorted(p.name for p in out.parent.iterdir()) == ["layout.yml"]
