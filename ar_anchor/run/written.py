@@ -23,6 +23,13 @@ from ..errors import OutputError, printable
 __all__ = ["WrittenFiles"]
 
 
+def _inside_name(name: object) -> bool:
+    """Is ``name`` a relative path below the folder (no ``..``, no absolute path, no empty part)?"""
+    if not isinstance(name, str) or not name or "\x00" in name or "\\" in name or name.startswith("/"):
+        return False
+    return all(part not in ("", ".", "..") for part in name.split("/"))
+
+
 class WrittenFiles:
     """The files ``command`` wrote into ``folder`` (read from its manifest; :meth:`record` and :meth:`save` add)."""
 
@@ -44,7 +51,7 @@ class WrittenFiles:
         return {
             name: entry
             for name, entry in files.items()
-            if isinstance(entry, list) and len(entry) == 2 and all(type(v) is int for v in entry)
+            if _inside_name(name) and isinstance(entry, list) and len(entry) == 2 and all(type(v) is int for v in entry)
         }
 
     @property
@@ -53,8 +60,12 @@ class WrittenFiles:
         return self.path.is_file()
 
     def _stat(self, name: str) -> list[int] | None:
+        """Size and time of the regular file ``name``, reached without leaving the folder (no link on the way)."""
+        path = self.folder / name
         try:
-            st = os.lstat(self.folder / name)
+            if os.path.realpath(path) != os.path.join(os.path.realpath(self.folder), *Path(name).parts):
+                return None  # a link on the way: it leads out of the folder, or to another file in it
+            st = os.lstat(path)
         except (OSError, ValueError):
             return None
         return [st.st_size, st.st_mtime_ns] if stat.S_ISREG(st.st_mode) else None

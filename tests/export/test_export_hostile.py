@@ -235,3 +235,29 @@ def test_a_run_into_a_folder_holding_the_users_exports_keeps_them(tmp_path):
     assert run_main(["-q", "export", str(run_dir)]).code == 0
     assert run_main(["-q", "demo", "--frames", "2", "--out", str(run_dir)]).code == 0
     assert sorted(p.name for p in run_dir.iterdir()) == ["poses.csv", "recording.rrd", "summary.json"]
+
+
+def test_a_planted_export_manifest_never_removes_a_file_outside_the_folder(tmp_path):
+    # given a run folder whose .ar-anchor-export.json lists, with their very sizes and times, a file beside the
+    # folder ("../outside.txt") and one reached through a link (tum -> a folder elsewhere)
+    import json
+    import os
+
+    run_dir = tmp_path / "r"
+    assert run_main(["-q", "demo", "--frames", "2", "--out", str(run_dir)]).code == 0
+    outside = tmp_path / "outside.txt"
+    outside.write_text("the user's")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "marker_0.txt").write_text("the user's too")
+    (run_dir / "tum").symlink_to(elsewhere)
+
+    def entry(path: Path) -> list[int]:
+        st = os.stat(path)
+        return [st.st_size, st.st_mtime_ns]
+
+    files = {"../outside.txt": entry(outside), "tum/marker_0.txt": entry(elsewhere / "marker_0.txt")}
+    (run_dir / ".ar-anchor-export.json").write_text(json.dumps({"files": files}))
+    # when a new run starts in it (which removes the previous export's files): both stay
+    assert run_main(["-q", "demo", "--frames", "2", "--out", str(run_dir)]).code == 0
+    assert outside.read_text() == "the user's" and (elsewhere / "marker_0.txt").read_text() == "the user's too"
