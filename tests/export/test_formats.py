@@ -67,13 +67,37 @@ def test_random_quaternions_match_rodrigues():
 
 @pytest.mark.parametrize(
     ("text", "expected"),
-    [("0.000000000", 0), ("0.033333333", 33_333_333), ("1733146085.123456789", 1_733_146_085_123_456_789), ("2", 2e9)],
+    [
+        ("0.000000000", 0),
+        ("0.033333333", 33_333_333),
+        ("1733146085.123456789", 1_733_146_085_123_456_789),
+        ("2", 2e9),
+        ("1.5e-8", 15),
+        ("2147483647.999999999", 2_147_483_647_999_999_999),  # the last ROS 2 time
+        ("1.000000000000000000000000000000000", 1e9),  # zeros below the nanosecond
+        ("0e999999", 0),
+    ],
 )
 def test_timestamps_are_read_to_the_nanosecond(text, expected):
     assert timestamp_ns_from_text(text) == int(expected)
 
 
-@pytest.mark.parametrize("text", ["", "nan", "inf", "abc", "0.0000000001"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "",
+        "nan",
+        "inf",
+        "abc",
+        "0.0000000001",
+        "1.0000000000000000000000000000001",  # (was rounded to 1 s by the decimal context)
+        "1e-999999999",  # (was 0)
+        "1e999999999",  # (was decimal.Overflow: an internal error)
+        "2147483648",
+        "-1e-9",
+        "1" * 60000,
+    ],
+)
 def test_timestamps_that_are_not_nanoseconds_are_refused(text):
     with pytest.raises(ValueError):
         timestamp_ns_from_text(text)

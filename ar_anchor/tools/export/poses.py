@@ -86,21 +86,32 @@ class PoseRow:
 
 
 def timestamp_ns_from_text(text: str) -> int:
-    """``timestamp_s`` text (seconds, a decimal number) -> integer nanoseconds, exactly (ValueError otherwise)."""
+    """``timestamp_s`` text (seconds, a decimal number) -> integer nanoseconds, exactly (ValueError otherwise):
+    from 0 to :data:`MAX_TIMESTAMP_S`, at most nine digits after the point that are not 0. Computed from the
+    decimal digits (no rounding context: ``1e999999999`` and ``1.0000000000000000000000000000001`` are refused,
+    not overflowed or rounded)."""
+    shown = printable(text.strip())[:40]
     try:
         seconds = Decimal(text.strip())
     except InvalidOperation:
-        raise ValueError(f"expected a time in seconds, got {text!r}") from None
+        raise ValueError(f"expected a time in seconds, got {shown!r}") from None
     if not seconds.is_finite():
-        raise ValueError(f"expected a finite time in seconds, got {text!r}")
-    nanoseconds = seconds.scaleb(9)
-    if nanoseconds != nanoseconds.to_integral_value():
-        raise ValueError(f"more than nanosecond resolution: {text!r}")
+        raise ValueError(f"expected a finite time in seconds, got {shown!r}")
     if seconds < 0:
-        raise ValueError(f"a negative time: {text.strip()!r} s (a run's times start at 0)")
-    if seconds > MAX_TIMESTAMP_S:
-        raise ValueError(f"{text.strip()!r} s is beyond the last time a ROS 2 stamp holds ({MAX_TIMESTAMP_S} s)")
-    return int(nanoseconds)
+        raise ValueError(f"a negative time: {shown!r} s (a run's times start at 0)")
+    if seconds >= MAX_TIMESTAMP_S + 1:  # (2147483647.999999999 s is a ROS 2 time still)
+        raise ValueError(f"{shown!r} s is beyond the last time a ROS 2 stamp holds ({MAX_TIMESTAMP_S} s)")
+    _sign, digits, exponent = seconds.as_tuple()
+    assert isinstance(exponent, int)  # (finite)
+    if not any(digits):
+        return 0
+    if exponent < -9:  # digits below the nanosecond: all of them must be 0
+        below = -9 - exponent
+        if any(digits[-below:]):
+            raise ValueError(f"more than nanosecond resolution: {shown!r}")
+        digits, exponent = digits[:-below], -9
+    # 0 < seconds <= MAX: exponent + 9 is small here (at most the digits of MAX_TIMESTAMP_S and 9)
+    return int("".join(map(str, digits)) or "0") * 10 ** (exponent + 9)
 
 
 def _where(path: Path, line: int, column: str | None = None) -> str:
