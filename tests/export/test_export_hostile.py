@@ -261,3 +261,25 @@ def test_a_planted_export_manifest_never_removes_a_file_outside_the_folder(tmp_p
     # when a new run starts in it (which removes the previous export's files): both stay
     assert run_main(["-q", "demo", "--frames", "2", "--out", str(run_dir)]).code == 0
     assert outside.read_text() == "the user's" and (elsewhere / "marker_0.txt").read_text() == "the user's too"
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "expected"),
+    [
+        # (was: internal error: ValueError: Exceeds the limit (4300 digits) for integer string conversion)
+        ("frame", "9" * 5000, f"line 2, column frame: expected a frame index, got '{'9' * 40}...'"),
+        ("target", "marker:" + "9" * 5000, f"line 2, column target: expected a marker id, got '{'9' * 40}...'"),
+        # (was: exit 1 naming the temporary folder's tum/board_xxx...txt: File name too long)
+        (
+            "target",
+            "board:" + "x" * 3000,
+            f"line 2, column target: target '{('board:' + 'x' * 3000)[:60]}'...: a name of 3006 characters is too "
+            "long for its TUM file name (at most 200): rename the board",
+        ),
+    ],
+    ids=["frame-5000-digits", "marker-5000-digits", "board-name-3000"],
+)
+def test_cells_too_long_for_their_meaning_are_one_line(run, column, value, expected):
+    _set(run, 1, column, value)
+    assert _one_error(run_main(["-q", "export", str(run)])) == f"ar-anchor: error: {run / 'poses.csv'}: {expected}"
+    _nothing_exported(run)

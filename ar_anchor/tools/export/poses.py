@@ -90,7 +90,7 @@ def timestamp_ns_from_text(text: str) -> int:
     from 0 to :data:`MAX_TIMESTAMP_S`, at most nine digits after the point that are not 0. Computed from the
     decimal digits (no rounding context: ``1e999999999`` and ``1.0000000000000000000000000000001`` are refused,
     not overflowed or rounded)."""
-    shown = printable(text.strip())[:40]
+    shown = _cell(text.strip())
     try:
         seconds = Decimal(text.strip())
     except InvalidOperation:
@@ -114,6 +114,12 @@ def timestamp_ns_from_text(text: str) -> int:
     return int("".join(map(str, digits)) or "0") * 10 ** (exponent + 9)
 
 
+def _cell(text: str, most: int = 40) -> str:
+    """A cell's text for a message: printable, and cut to ``most`` characters (a cell may be 64 kB long)."""
+    shown = printable(text)
+    return shown if len(shown) <= most else shown[:most] + "..."
+
+
 def _where(path: Path, line: int, column: str | None = None) -> str:
     return f"{printable(path)}: line {line}" + (f", column {column}" if column else "")
 
@@ -122,9 +128,9 @@ def _number(text: str, path: Path, line: int, column: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise InputError(f"{_where(path, line, column)}: expected a number, got {printable(text)!r}") from None
+        raise InputError(f"{_where(path, line, column)}: expected a number, got {_cell(text)!r}") from None
     if not math.isfinite(value):
-        raise InputError(f"{_where(path, line, column)}: expected a finite number, got {printable(text)!r}")
+        raise InputError(f"{_where(path, line, column)}: expected a finite number, got {_cell(text)!r}")
     return value
 
 
@@ -213,8 +219,8 @@ def _rows(handle, path: Path) -> Iterator[PoseRow]:  # noqa: ANN001 - a text fil
             raise InputError(f"{_where(path, line)}: a row of {sum(map(len, cells_list))} characters is no poses row")
         cells = dict(zip(POSES_CSV_HEADER, cells_list))
         frame_text = cells["frame"].strip()
-        if not (frame_text.isascii() and frame_text.isdigit()):
-            raise InputError(f"{_where(path, line, 'frame')}: expected a frame index, got {printable(frame_text)!r}")
+        if not (frame_text.isascii() and frame_text.isdigit()) or len(frame_text) > 18:  # (up to 10^18 - 1)
+            raise InputError(f"{_where(path, line, 'frame')}: expected a frame index, got {_cell(frame_text)!r}")
         frame = int(frame_text)
         if frame < previous_frame:
             raise InputError(f"{_where(path, line, 'frame')}: frame {frame} after frame {previous_frame}")
@@ -230,16 +236,19 @@ def _rows(handle, path: Path) -> Iterator[PoseRow]:  # noqa: ANN001 - a text fil
                 f"{printable(cells['timestamp_s'].strip())} s is before frame {previous_frame} at "
                 f"{previous_time / 1e9:.9f} s"
             )
+        kind, _, name = cells["target"].partition(":")
+        if kind == "marker" and len(name) > 18:  # (a marker id: Python refuses int() of 4300 digits and more)
+            raise InputError(f"{_where(path, line, 'target')}: expected a marker id, got {_cell(name)!r}")
         try:
             target = TargetId.parse(cells["target"])
         except ValueError as err:
-            raise InputError(f"{_where(path, line, 'target')}: {printable(err)}") from None
+            raise InputError(f"{_where(path, line, 'target')}: {_cell(str(err), 160)}") from None
         try:
             state = TrackState(cells["state"])
         except ValueError:
             known = ", ".join(s.value for s in TrackState)
             raise InputError(
-                f"{_where(path, line, 'state')}: expected one of {known}, got {printable(cells['state'])!r}"
+                f"{_where(path, line, 'state')}: expected one of {known}, got {_cell(cells['state'])!r}"
             ) from None
         if frame != previous_frame:
             frame_targets.clear()

@@ -44,6 +44,7 @@ POSES_EXT_HEADER = [
 ]
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
+MAX_NAME_BYTES = 200  # a target's export name: its TUM file name (with .txt) within a file system's 255 bytes
 
 
 def frame_name(target: TargetId) -> str:
@@ -64,6 +65,11 @@ class FrameNames:
         name = self._names.get(target)
         if name is None:
             name = frame_name(target)
+            if len(name.encode()) > MAX_NAME_BYTES:
+                raise InputError(
+                    f"{where + ': ' if where else ''}target {printable(target)[:60]!r}...: a name of {len(name)} "
+                    f"characters is too long for its TUM file name (at most {MAX_NAME_BYTES}): rename the board"
+                )
             other = self._owners.setdefault(name, target)
             if other != target:
                 raise InputError(
