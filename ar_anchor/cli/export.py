@@ -162,11 +162,12 @@ def cmd_export(args: argparse.Namespace) -> int:
         camera = CameraModel.from_yaml(args.camera)
         inputs.append(("--camera", args.camera))
     out = args.out if args.out is not None else args.run_dir
+    option = "--out" if args.out is not None else "RUN_DIR"
     created = not out.exists()
-    out = prepare_out_dir(out)
+    out = prepare_out_dir(out, option)
     progress = Progress(not args.quiet, "export")
     try:
-        with OutDirLock(out):
+        with OutDirLock(out, option):
             result = export_run(
                 args.run_dir, out, formats=args.formats, camera=camera, images=images, progress=progress, inputs=inputs
             )

@@ -193,10 +193,12 @@ def _pid_alive(pid: int) -> bool:
 class OutDirLock:
     """``<out>/.ar-anchor.lock``: one run per output directory. The file is created whole (written beside it,
     then hard-linked into place, which fails when it exists) and holds the owner's pid and host; a lock of
-    this host whose process is gone is taken over with a warning. Re-entrant within one process."""
+    this host whose process is gone is taken over with a warning. Re-entrant within one process. ``option``: what
+    the user calls the directory in messages (``--out``; ``RUN_DIR`` for an export into the run's folder)."""
 
-    def __init__(self, out_dir: Path) -> None:
+    def __init__(self, out_dir: Path, option: str = "--out") -> None:
         self.out_dir = out_dir
+        self.option = option
         self.path = out_dir / LOCK_NAME
         self._key = _identity(out_dir)[0]
         self._held = False
@@ -218,11 +220,16 @@ class OutDirLock:
                 except FileExistsError:
                     self._take_over_stale()
             else:
-                raise InputError(f"--out {printable(self.out_dir)}: another run is starting in it")
+                raise InputError(f"{self.option} {printable(self.out_dir)}: another run is starting in it")
         except OSError as err:
-            raise OutputError(f"--out {printable(self.out_dir)}: cannot create {LOCK_NAME} ({err.strerror})") from None
+            raise OutputError(
+                f"{self.option} {printable(self.out_dir)}: cannot create {LOCK_NAME} ({err.strerror or err})"
+            ) from None
         finally:
-            temporary.unlink(missing_ok=True)
+            # (on a read-only file system even removing a file that is not there fails: that error is not the
+            # one to report, and there is nothing to remove)
+            with suppress(OSError):
+                temporary.unlink(missing_ok=True)
         _HELD[self._key] = 1
         self._held = True
 
@@ -234,12 +241,12 @@ class OutDirLock:
         except (OSError, ValueError):
             pid, host = -1, socket.gethostname()  # unreadable or half written: nobody can hold it
         if host == socket.gethostname() and not _pid_alive(pid):
-            log.warning("--out %s: taking over the lock of a run that is gone", printable(self.out_dir))
+            log.warning("%s %s: taking over the lock of a run that is gone", self.option, printable(self.out_dir))
             self.path.unlink(missing_ok=True)
             return
         raise InputError(
-            f"--out {printable(self.out_dir)}: another run (pid {pid} on {printable(host)}) is writing into it; "
-            f"give another --out (or remove {LOCK_NAME} if that run is gone)"
+            f"{self.option} {printable(self.out_dir)}: another run (pid {pid} on {printable(host)}) is writing into "
+            f"it; give another --out (or remove {LOCK_NAME} if that run is gone)"
         )
 
     def release(self) -> None:
@@ -253,7 +260,9 @@ class OutDirLock:
             try:
                 self.path.unlink(missing_ok=True)
             except OSError as err:
-                log.warning("--out %s: cannot remove %s (%s)", printable(self.out_dir), LOCK_NAME, err.strerror)
+                log.warning(
+                    "%s %s: cannot remove %s (%s)", self.option, printable(self.out_dir), LOCK_NAME, err.strerror
+                )
 
     def __enter__(self) -> OutDirLock:
         self.acquire()

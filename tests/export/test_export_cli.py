@@ -94,7 +94,7 @@ def test_export_into_another_folder_with_some_formats_and_a_camera_file(tmp_path
     run.camera.to_yaml(camera_file)
     result = run_main(["-q", "export", str(run.path), "--out", str(tmp_path / "x"), "--formats", "mcap,tum"])
     assert result.code == 0, result.describe()
-    assert sorted(p.name for p in (tmp_path / "x").iterdir()) == ["run.mcap", "tum"]
+    assert sorted(p.name for p in (tmp_path / "x").iterdir()) == [".ar-anchor-export.json", "run.mcap", "tum"]
     assert not (run.path / "run.mcap").exists()
     # a --camera without a file of the run: it is the one in CameraInfo
     summary = json.loads((run.path / "summary.json").read_text())

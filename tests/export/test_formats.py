@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from ar_anchor.errors import InputError, OutputError
+from ar_anchor.errors import InputError
 from ar_anchor.targets import TargetId
 from ar_anchor.tools.export import export_run
 from ar_anchor.tools.export.poses import quaternion_xyzw_from_rvec, read_poses_csv, timestamp_ns_from_text
@@ -67,13 +67,37 @@ def test_random_quaternions_match_rodrigues():
 
 @pytest.mark.parametrize(
     ("text", "expected"),
-    [("0.000000000", 0), ("0.033333333", 33_333_333), ("1733146085.123456789", 1_733_146_085_123_456_789), ("2", 2e9)],
+    [
+        ("0.000000000", 0),
+        ("0.033333333", 33_333_333),
+        ("1733146085.123456789", 1_733_146_085_123_456_789),
+        ("2", 2e9),
+        ("1.5e-8", 15),
+        ("2147483647.999999999", 2_147_483_647_999_999_999),  # the last ROS 2 time
+        ("1.000000000000000000000000000000000", 1e9),  # zeros below the nanosecond
+        ("0e999999", 0),
+    ],
 )
 def test_timestamps_are_read_to_the_nanosecond(text, expected):
     assert timestamp_ns_from_text(text) == int(expected)
 
 
-@pytest.mark.parametrize("text", ["", "nan", "inf", "abc", "0.0000000001"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "",
+        "nan",
+        "inf",
+        "abc",
+        "0.0000000001",
+        "1.0000000000000000000000000000001",  # (was rounded to 1 s by the decimal context)
+        "1e-999999999",  # (was 0)
+        "1e999999999",  # (was decimal.Overflow: an internal error)
+        "2147483648",
+        "-1e-9",
+        "1" * 60000,
+    ],
+)
 def test_timestamps_that_are_not_nanoseconds_are_refused(text):
     with pytest.raises(ValueError):
         timestamp_ns_from_text(text)
@@ -90,8 +114,8 @@ def test_frame_names(target, name):
 def test_two_targets_that_would_share_a_frame_name_are_refused():
     names = FrameNames()
     names(TargetId.parse("board:a b"))
-    with pytest.raises(OutputError, match="board:a_b.*board_a_b|board_a_b"):
-        names(TargetId.parse("board:a_b"))
+    with pytest.raises(InputError, match="^poses.csv: line 3: targets 'board:a b' and 'board:a_b'.*board_a_b"):
+        names(TargetId.parse("board:a_b"), "poses.csv: line 3")
 
 
 # ------------------------------------------------------------------------------------------ ROS 2 schemas
@@ -199,26 +223,28 @@ def test_tum_files_hold_the_camera_in_each_target_frame(tmp_path):
 
 
 def test_a_new_export_replaces_the_old_files_and_a_failed_one_leaves_them(tmp_path):
-    # given an exported run, and a stale TUM file of a target no longer in it
+    # given a run exported when it had a target marker:99 (now marker:7), and files of the user's in tum/
     run = write_run(tmp_path / "run")
-    export_run(run.path, formats=("csv", "tum"))
-    (run.path / "tum" / "marker_99.txt").write_text("stale")
-    (run.path / "tum" / "notes.txt").write_text("the user's")
-    before = (run.path / "poses_ext.csv").read_text()
-    # when poses.csv is damaged and exported again
     poses = run.path / "poses.csv"
     good = poses.read_text()
+    poses.write_text(good.replace("marker:7", "marker:99"))
+    export_run(run.path, formats=("csv", "tum"))
+    assert (run.path / "tum" / "marker_99.txt").is_file()
+    (run.path / "tum" / "notes.txt").write_text("the user's")
+    (run.path / "tum" / "marker_5.txt").write_text("the user's, named like an export")
+    before = (run.path / "poses_ext.csv").read_text()
+    # when poses.csv is damaged and exported again
     poses.write_text(good.replace(",tracked,", ",lost,", 1))
     with pytest.raises(InputError):
         export_run(run.path, formats=("csv", "tum"))
     # then the previous export is intact and no temporary folder is left
     assert (run.path / "poses_ext.csv").read_text() == before
     assert not [p for p in run.path.iterdir() if p.name.startswith(".export")]
-    # and when exported from the good file again, the stale TUM file is gone (the user's stays)
+    # and when exported from the good file again, the old export's TUM file is gone (the user's files stay)
     poses.write_text(good)
     export_run(run.path, formats=("tum",))
     names = sorted(p.name for p in (run.path / "tum").iterdir())
-    assert names == ["board_my_desk.txt", "marker_0.txt", "marker_7.txt", "notes.txt"]
+    assert names == ["board_my_desk.txt", "marker_0.txt", "marker_5.txt", "marker_7.txt", "notes.txt"]
 
 
 def test_the_camera_comes_from_summary_json_or_camera_yml(tmp_path):

@@ -7,11 +7,12 @@ import argparse
 import logging
 import os
 import sys
+from contextlib import ExitStack
 from pathlib import Path
 
 from ...errors import ArAnchorError, InputError, SourceError, printable
 from ...run.outputs import prepare_out_file_folder
-from ...run.paths import check_paths, spec_inputs
+from ...run.paths import OutDirLock, check_paths, spec_inputs
 from ...sources.open import is_device
 from .gather import calibrate_source
 from .recording import CalibrationRecording
@@ -32,6 +33,33 @@ def _check_paths(out: Path, rrd: Path, source: str) -> None:
     check_paths(outputs, [] if is_device(source) else spec_inputs(source))
 
 
+_APPLICATION = b"ar_anchor_calibrate"  # the recording's application id, in the head of every .rrd it writes
+
+
+def _written_by_calibrate(rrd: Path) -> bool:
+    """Is ``rrd`` a recording an earlier ``ar-anchor calibrate`` wrote (a rerun file whose head names its
+    application id)? A link, a folder or anything else is not."""
+    if rrd.is_symlink() or not rrd.is_file():
+        return False
+    try:
+        with rrd.open("rb") as handle:
+            head = handle.read(4096)
+    except OSError:
+        return False
+    return head.startswith(b"RRF") and _APPLICATION in head
+
+
+def _check_rrd_is_ours(rrd: Path, out: Path, given: bool) -> None:
+    """The recording replaces only a recording calibrate wrote (:class:`InputError` naming the option)."""
+    if (rrd.exists() or rrd.is_symlink()) and not _written_by_calibrate(rrd):
+        option = f"--rrd {printable(rrd)}" if given else f"--out {printable(out)}"
+        hint = "give another --rrd" if given else "give --rrd elsewhere"
+        raise InputError(
+            f"{option}: would overwrite {printable(rrd)} (the recording), which ar-anchor calibrate did not write: "
+            f"move that file or {hint}"
+        )
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
     """``ar-anchor calibrate``: calibrate, write ``--out`` and the recording, print the report."""
     spec = CharucoSpec.parse(args.charuco, args.square_m, args.marker_m, args.dictionary, args.legacy)
@@ -49,7 +77,16 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if not is_device(source) and not any(ch in source for ch in "*?[") and not Path(source).exists():
         raise SourceError(f"{source}: not found (expected an image folder or glob, a video file, or a device)")
     _check_paths(out, rrd, source)
+    _check_rrd_is_ours(rrd, out, getattr(args, "rrd", None) is not None)
+    prepare_out_file_folder(rrd, "--rrd")
+    with ExitStack() as locks:  # one run per output folder, as for every command (--out's, and --rrd's)
+        locks.enter_context(OutDirLock(out.parent, "--out"))
+        if os.path.abspath(rrd.parent) != os.path.abspath(out.parent):
+            locks.enter_context(OutDirLock(rrd.parent, "--rrd"))
+        return _calibrate(args, spec, source, out, rrd, quiet)
 
+
+def _calibrate(args: argparse.Namespace, spec: CharucoSpec, source: str, out: Path, rrd: Path, quiet: bool) -> int:
     def progress(message: str) -> None:
         if not quiet:
             print(f"ar-anchor: {message}", file=sys.stderr, flush=True)

@@ -39,7 +39,14 @@ __all__ = [
     "timestamp_ns_from_text",
 ]
 
-_MAX_LINE_CHARS = 4096  # a poses.csv row is ~400 characters: anything far longer is not one
+# limits of what is read as a poses.csv (documented in docs/exports.md): a row is ~400 characters, and the
+# file is read line by line with this bound (a longer line is refused before it is parsed: memory stays small)
+MAX_LINE_CHARS = 65536
+# a rotation vector longer than this is no rotation ar-anchor wrote (it writes at most pi: one turn is 2 pi)
+MAX_ROTATION_RAD = 2 * math.pi
+MAX_TRANSLATION_M = 1e6  # a translation longer than this (1000 km) is no pose ar-anchor wrote
+# timestamps: from 0 (a run's clock starts there, or at boot) to the last second a ROS 2 time holds (int32)
+MAX_TIMESTAMP_S = 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -79,17 +86,38 @@ class PoseRow:
 
 
 def timestamp_ns_from_text(text: str) -> int:
-    """``timestamp_s`` text (seconds, a decimal number) -> integer nanoseconds, exactly (ValueError otherwise)."""
+    """``timestamp_s`` text (seconds, a decimal number) -> integer nanoseconds, exactly (ValueError otherwise):
+    from 0 to :data:`MAX_TIMESTAMP_S`, at most nine digits after the point that are not 0. Computed from the
+    decimal digits (no rounding context: ``1e999999999`` and ``1.0000000000000000000000000000001`` are refused,
+    not overflowed or rounded)."""
+    shown = _cell(text.strip())
     try:
         seconds = Decimal(text.strip())
     except InvalidOperation:
-        raise ValueError(f"expected a time in seconds, got {text!r}") from None
+        raise ValueError(f"expected a time in seconds, got {shown!r}") from None
     if not seconds.is_finite():
-        raise ValueError(f"expected a finite time in seconds, got {text!r}")
-    nanoseconds = seconds.scaleb(9)
-    if nanoseconds != nanoseconds.to_integral_value():
-        raise ValueError(f"more than nanosecond resolution: {text!r}")
-    return int(nanoseconds)
+        raise ValueError(f"expected a finite time in seconds, got {shown!r}")
+    if seconds < 0:
+        raise ValueError(f"a negative time: {shown!r} s (a run's times start at 0)")
+    if seconds >= MAX_TIMESTAMP_S + 1:  # (2147483647.999999999 s is a ROS 2 time still)
+        raise ValueError(f"{shown!r} s is beyond the last time a ROS 2 stamp holds ({MAX_TIMESTAMP_S} s)")
+    _sign, digits, exponent = seconds.as_tuple()
+    assert isinstance(exponent, int)  # (finite)
+    if not any(digits):
+        return 0
+    if exponent < -9:  # digits below the nanosecond: all of them must be 0
+        below = -9 - exponent
+        if any(digits[-below:]):
+            raise ValueError(f"more than nanosecond resolution: {shown!r}")
+        digits, exponent = digits[:-below], -9
+    # 0 < seconds <= MAX: exponent + 9 is small here (at most the digits of MAX_TIMESTAMP_S and 9)
+    return int("".join(map(str, digits)) or "0") * 10 ** (exponent + 9)
+
+
+def _cell(text: str, most: int = 40) -> str:
+    """A cell's text for a message: printable, and cut to ``most`` characters (a cell may be 64 kB long)."""
+    shown = printable(text)
+    return shown if len(shown) <= most else shown[:most] + "..."
 
 
 def _where(path: Path, line: int, column: str | None = None) -> str:
@@ -100,9 +128,9 @@ def _number(text: str, path: Path, line: int, column: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise InputError(f"{_where(path, line, column)}: expected a number, got {printable(text)!r}") from None
+        raise InputError(f"{_where(path, line, column)}: expected a number, got {_cell(text)!r}") from None
     if not math.isfinite(value):
-        raise InputError(f"{_where(path, line, column)}: expected a finite number, got {printable(text)!r}")
+        raise InputError(f"{_where(path, line, column)}: expected a finite number, got {_cell(text)!r}")
     return value
 
 
@@ -112,6 +140,18 @@ def _pose(cells: dict[str, str], prefix: str, path: Path, line: int, *, required
     if not any(texts) and not required:
         return None
     values = [_number(text, path, line, name) for text, name in zip(texts, names)]
+    angle = math.hypot(*values[:3])
+    if angle > MAX_ROTATION_RAD:
+        raise InputError(
+            f"{_where(path, line, names[0])}: a rotation vector of {angle:.6g} rad is no rotation ar-anchor writes "
+            f"(at most pi; refused beyond 2 pi)"
+        )
+    distance = math.hypot(*values[3:])
+    if distance > MAX_TRANSLATION_M:
+        raise InputError(
+            f"{_where(path, line, names[3])}: a translation of {distance:.6g} m is no pose ar-anchor writes "
+            f"(refused beyond {MAX_TRANSLATION_M:g} m)"
+        )
     return Pose(np.array(values[:3]), np.array(values[3:]))
 
 
@@ -120,7 +160,8 @@ def read_poses_csv(path: str | os.PathLike[str]) -> Iterator[PoseRow]:
     column at the first thing that is not what ``ar-anchor`` writes."""
     path = Path(path)
     try:
-        handle = open(path, encoding="utf-8", newline="")  # noqa: SIM115 - closed in the finally below
+        # utf-8-sig: a byte order mark (a spreadsheet's "CSV UTF-8") is read as nothing
+        handle = open(path, encoding="utf-8-sig", newline="")  # noqa: SIM115 - closed in the finally below
     except FileNotFoundError:
         raise InputError(f"{printable(path)}: not found (a run directory holds the poses.csv it wrote)") from None
     except IsADirectoryError:
@@ -137,8 +178,24 @@ def read_poses_csv(path: str | os.PathLike[str]) -> Iterator[PoseRow]:
         handle.close()
 
 
+def _bounded_lines(handle, path: Path) -> Iterator[str]:  # noqa: ANN001 - a text file
+    """The lines of ``handle``, each read with at most :data:`MAX_LINE_CHARS` characters: a longer one is an
+    :class:`InputError` before it is held whole (one line of 200 M commas is refused after 64 kB, not parsed)."""
+    number = 0
+    while True:
+        line = handle.readline(MAX_LINE_CHARS + 1)
+        if not line:
+            return
+        number += 1
+        if len(line) > MAX_LINE_CHARS:
+            raise InputError(
+                f"{_where(path, number)}: longer than {MAX_LINE_CHARS} characters: not a row of a poses.csv"
+            )
+        yield line
+
+
 def _rows(handle, path: Path) -> Iterator[PoseRow]:  # noqa: ANN001 - a text file
-    reader = csv.reader(handle)
+    reader = csv.reader(_bounded_lines(handle, path))
     header = next(reader, None)
     if header != POSES_CSV_HEADER:
         shown = "an empty file" if header is None else printable(",".join(header))[:120]
@@ -148,6 +205,7 @@ def _rows(handle, path: Path) -> Iterator[PoseRow]:  # noqa: ANN001 - a text fil
         )
     previous_frame = -1
     previous_time: int | None = None
+    frame_targets: dict[TargetId, int] = {}  # the targets of the current frame -> their line
     for cells_list in reader:
         line = reader.line_num
         if not cells_list:
@@ -157,12 +215,12 @@ def _rows(handle, path: Path) -> Iterator[PoseRow]:  # noqa: ANN001 - a text fil
                 f"{_where(path, line)}: expected {len(POSES_CSV_HEADER)} columns, got {len(cells_list)}"
                 + (" (a row cut short: was the run's disk full?)" if len(cells_list) < len(POSES_CSV_HEADER) else "")
             )
-        if sum(map(len, cells_list)) > _MAX_LINE_CHARS:
+        if sum(map(len, cells_list)) > MAX_LINE_CHARS:
             raise InputError(f"{_where(path, line)}: a row of {sum(map(len, cells_list))} characters is no poses row")
         cells = dict(zip(POSES_CSV_HEADER, cells_list))
         frame_text = cells["frame"].strip()
-        if not (frame_text.isascii() and frame_text.isdigit()):
-            raise InputError(f"{_where(path, line, 'frame')}: expected a frame index, got {printable(frame_text)!r}")
+        if not (frame_text.isascii() and frame_text.isdigit()) or len(frame_text) > 18:  # (up to 10^18 - 1)
+            raise InputError(f"{_where(path, line, 'frame')}: expected a frame index, got {_cell(frame_text)!r}")
         frame = int(frame_text)
         if frame < previous_frame:
             raise InputError(f"{_where(path, line, 'frame')}: frame {frame} after frame {previous_frame}")
@@ -172,17 +230,34 @@ def _rows(handle, path: Path) -> Iterator[PoseRow]:  # noqa: ANN001 - a text fil
             raise InputError(f"{_where(path, line, 'timestamp_s')}: {printable(err)}") from None
         if frame == previous_frame and timestamp_ns != previous_time:
             raise InputError(f"{_where(path, line, 'timestamp_s')}: frame {frame} has two timestamps")
+        if frame != previous_frame and previous_time is not None and timestamp_ns < previous_time:
+            raise InputError(
+                f"{_where(path, line, 'timestamp_s')}: time goes backwards: frame {frame} at "
+                f"{printable(cells['timestamp_s'].strip())} s is before frame {previous_frame} at "
+                f"{previous_time / 1e9:.9f} s"
+            )
+        kind, _, name = cells["target"].partition(":")
+        if kind == "marker" and len(name) > 18:  # (a marker id: Python refuses int() of 4300 digits and more)
+            raise InputError(f"{_where(path, line, 'target')}: expected a marker id, got {_cell(name)!r}")
         try:
             target = TargetId.parse(cells["target"])
         except ValueError as err:
-            raise InputError(f"{_where(path, line, 'target')}: {printable(err)}") from None
+            raise InputError(f"{_where(path, line, 'target')}: {_cell(str(err), 160)}") from None
         try:
             state = TrackState(cells["state"])
         except ValueError:
             known = ", ".join(s.value for s in TrackState)
             raise InputError(
-                f"{_where(path, line, 'state')}: expected one of {known}, got {printable(cells['state'])!r}"
+                f"{_where(path, line, 'state')}: expected one of {known}, got {_cell(cells['state'])!r}"
             ) from None
+        if frame != previous_frame:
+            frame_targets.clear()
+        if target in frame_targets:
+            raise InputError(
+                f"{_where(path, line, 'target')}: {printable(target)} twice in frame {frame} (line "
+                f"{frame_targets[target]} too): one pose per target and frame"
+            )
+        frame_targets[target] = line
         pose = _pose(cells, "", path, line, required=True)
         raw = _pose(cells, "raw_", path, line, required=False)
         assert pose is not None

@@ -25,7 +25,7 @@ import logging
 import os
 import shutil
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import AbstractContextManager
+from contextlib import AbstractContextManager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,7 +35,8 @@ import numpy as np
 from ...camera import CameraModel
 from ...errors import InputError, OutputError, printable
 from ...run.outputs import prepare_out_dir
-from ...run.paths import Named, check_paths
+from ...run.paths import Named, _previous_run_here, check_paths
+from ...run.written import WrittenFiles
 from ...sources.base import Frame, FrameSource
 from .poses import PoseRow, frames_of, read_poses_csv
 from .tables import FrameNames, PosesExtWriter, TumWriter
@@ -103,26 +104,49 @@ def camera_summary(camera: CameraModel) -> dict[str, Any]:
     }
 
 
+def _written(out_dir: Path) -> WrittenFiles:
+    """What earlier exports wrote into ``out_dir`` (``.ar-anchor-export.json``). A run's folder from before that
+    manifest existed (a run's ``summary.json``, no manifest) counts its export names as an export's, as then."""
+    written = WrittenFiles(out_dir, "export")
+    if not written.exists and _previous_run_here(out_dir):
+        names = [POSES_EXT, MCAP]
+        tum = out_dir / TUM_DIR
+        if tum.is_dir() and not tum.is_symlink():
+            names += [f"{TUM_DIR}/{p.name}" for p in tum.iterdir() if _is_tum_name(p.name)]
+        for name in names:
+            written.record(name)
+    return written
+
+
+def _is_tum_name(name: str) -> bool:
+    return name.endswith(".txt") and name.startswith(_TUM_FILE)
+
+
 def clear_previous_exports(out_dir: Path) -> list[str]:
-    """At a run's start, in its claimed ``out_dir`` (new, or a previous run's): remove the previous run's exports,
-    which belong to the ``poses.csv`` this run replaces. Returns the names removed."""
+    """At a run's start, in its claimed ``out_dir`` (new, or a previous run's): remove the exports an earlier
+    export wrote there, when a run wrote it before (they belong to the ``poses.csv`` this run replaces); files
+    of those names that no export wrote are the user's and stay, and so do the exports of another run in a
+    folder no run wrote. Returns the names removed."""
     out_dir = Path(out_dir)
+    if not _previous_run_here(out_dir):
+        return []
+    written = _written(out_dir)
     removed = []
-    for name in (POSES_EXT, MCAP):
-        path = out_dir / name
-        if path.is_file() and not path.is_symlink():
-            path.unlink()
-            removed.append(name)
-    tum = out_dir / TUM_DIR
-    if tum.is_dir() and not tum.is_symlink():
-        for path in tum.iterdir():
-            if path.suffix == ".txt" and path.name.startswith(_TUM_FILE) and path.is_file():
-                path.unlink()
-                removed.append(f"{TUM_DIR}/{path.name}")
+    for name in written.names():
         try:
+            (out_dir / name).unlink()
+        except OSError as err:
+            raise OutputError(
+                f"--out {printable(out_dir / name)}: cannot remove an old export ({err.strerror})"
+            ) from None
+        written.forget(name)
+        removed.append(name)
+    tum = out_dir / TUM_DIR
+    if any(name.startswith(f"{TUM_DIR}/") for name in removed) and tum.is_dir() and not tum.is_symlink():
+        with suppress(OSError):  # not empty: the user's files stay
             tum.rmdir()
-        except OSError:  # not empty: the user's files stay
-            pass
+    if written.exists:
+        written.save()
     if removed:
         log.info("--out %s: removed the previous run's exports %s", printable(out_dir), ", ".join(removed))
     return removed
@@ -223,7 +247,11 @@ def export_run(
     out = Path(out_dir) if out_dir is not None else run_dir
     outputs = export_output_paths(out, formats)
     check_paths(outputs, [("RUN_DIR's poses.csv", poses_csv), *inputs])
-    out = prepare_out_dir(out)
+    option = "RUN_DIR" if _same_folder(out, run_dir) else "--out"
+    if out.is_dir():
+        names = [{"csv": POSES_EXT, "mcap": MCAP}[name] for name in formats if name != "tum"]
+        _refuse_theirs(out, option, _written(out).theirs(names))
+    out = prepare_out_dir(out, option)
     tum = out / TUM_DIR
     if "tum" in formats and (tum.is_symlink() or (tum.exists() and not tum.is_dir())):
         raise OutputError(f"{printable(tum)}: is not a folder (the TUM files go into {TUM_DIR}/)")
@@ -236,7 +264,7 @@ def export_run(
         raise OutputError(f"--out {printable(out)}: cannot write ({err.strerror or err})") from None
     try:
         result = _export(run_dir, poses_csv, work, formats, camera, images, progress)
-        files = _move_into_place(work, out, formats)
+        files = _move_into_place(work, out, formats, option)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return ExportResult(out, files, result.frames, result.rows, result.images, result.messages)
@@ -272,6 +300,8 @@ def _export(
             bag = McapExportWriter(work / MCAP, camera, names)
 
         def take(group: list[PoseRow]) -> None:
+            for row in group:  # two targets of one export name: refused at the row of the second
+                names(row.target, f"{printable(poses_csv)}: line {row.line}, column target")
             counts.frames += 1
             counts.rows += len(group)
             if csv_writer is not None:
@@ -364,28 +394,55 @@ def _missing(name: str, row: PoseRow, where: str) -> str:
     return f"{name}: has no frame {row.frame} (poses.csv line {row.line}; {where}): not the frames of this run"
 
 
-def _move_into_place(work: Path, out: Path, formats: tuple[str, ...]) -> list[Path]:
-    """Move the finished exports from ``work`` into ``out`` (replacing the previous ones); their paths."""
+def _same_folder(one: Path, other: Path) -> bool:
+    try:
+        return one.resolve() == other.resolve()
+    except (OSError, RuntimeError):
+        return os.path.abspath(one) == os.path.abspath(other)
+
+
+def _refuse_theirs(out: Path, option: str, theirs: list[str]) -> None:
+    """An :class:`InputError` when ``theirs`` (files an export would write over, which no export wrote) is not empty."""
+    if theirs:
+        shown = ", ".join(printable(name) for name in theirs)
+        them = "them" if len(theirs) > 1 else "it"
+        raise InputError(
+            f"{option} {printable(out)}: holds {shown}, which no ar-anchor export wrote; the export would overwrite "
+            f"{them}: move {them} or give another --out"
+        )
+
+
+def _move_into_place(work: Path, out: Path, formats: tuple[str, ...], option: str = "--out") -> list[Path]:
+    """Move the finished exports from ``work`` into ``out``, replacing only what an earlier export wrote there (its
+    TUM files of targets this run has not are removed); their paths. A file of the user's in the way refuses
+    the whole move (:class:`InputError`: nothing is moved); ``.ar-anchor-export.json`` lists what is in place."""
+    names = []
+    if "csv" in formats:
+        names.append(POSES_EXT)
+    if "tum" in formats:
+        names += [f"{TUM_DIR}/{new.name}" for new in sorted((work / TUM_DIR).iterdir())]
+    if "mcap" in formats:
+        names.append(MCAP)
+    written = _written(out)
+    _refuse_theirs(out, option, written.theirs(names))
     files = []
     try:
-        if "csv" in formats:
-            os.replace(work / POSES_EXT, out / POSES_EXT)
-            files.append(out / POSES_EXT)
         if "tum" in formats:
             tum = out / TUM_DIR
             if tum.is_symlink() or (tum.exists() and not tum.is_dir()):
                 raise OutputError(f"{printable(tum)}: is not a folder (the TUM files go into {TUM_DIR}/)")
             tum.mkdir(exist_ok=True)
-            for old in tum.iterdir():
-                if old.suffix == ".txt" and old.name.startswith(_TUM_FILE) and old.is_file():
-                    old.unlink()
-            for new in sorted((work / TUM_DIR).iterdir()):
-                os.replace(new, tum / new.name)
-                files.append(tum / new.name)
-        if "mcap" in formats:
-            os.replace(work / MCAP, out / MCAP)
-            files.append(out / MCAP)
+            for old in written.names():  # the previous export's trajectories of targets this one has not
+                if old.startswith(f"{TUM_DIR}/") and old not in names:
+                    (out / old).unlink()
+                    written.forget(old)
+        for name in names:
+            os.replace(work / name, out / name)
+            written.record(name)
+            files.append(out / name)
     except OSError as err:
         problem = err.strerror or err
-        raise OutputError(f"--out {printable(out)}: cannot move the exports into place ({problem})") from None
+        raise OutputError(f"{option} {printable(out)}: cannot move the exports into place ({problem})") from None
+    finally:
+        written.save()
     return files

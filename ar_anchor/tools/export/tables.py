@@ -14,7 +14,7 @@ import io
 import re
 from pathlib import Path
 
-from ...errors import OutputError, printable
+from ...errors import InputError, OutputError, printable
 from ...targets import TargetId
 from .poses import PoseRow, quaternion_xyzw_inverse
 
@@ -44,6 +44,7 @@ POSES_EXT_HEADER = [
 ]
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
+MAX_NAME_BYTES = 200  # a target's export name: its TUM file name (with .txt) within a file system's 255 bytes
 
 
 def frame_name(target: TargetId) -> str:
@@ -53,21 +54,27 @@ def frame_name(target: TargetId) -> str:
 
 
 class FrameNames:
-    """:func:`frame_name` of each target, refusing two targets that would share one name."""
+    """:func:`frame_name` of each target, refusing (:class:`InputError`) two targets that would share one name."""
 
     def __init__(self) -> None:
         self._names: dict[TargetId, str] = {}
         self._owners: dict[str, TargetId] = {}
 
-    def __call__(self, target: TargetId) -> str:
+    def __call__(self, target: TargetId, where: str = "") -> str:
+        """``target``'s name; ``where`` (the file and line it was read at) starts the message of a clash."""
         name = self._names.get(target)
         if name is None:
             name = frame_name(target)
+            if len(name.encode()) > MAX_NAME_BYTES:
+                raise InputError(
+                    f"{where + ': ' if where else ''}target {printable(target)[:60]!r}...: a name of {len(name)} "
+                    f"characters is too long for its TUM file name (at most {MAX_NAME_BYTES}): rename the board"
+                )
             other = self._owners.setdefault(name, target)
             if other != target:
-                raise OutputError(
-                    f"targets {printable(other)!r} and {printable(target)!r} would both be exported as {name!r}: "
-                    "rename one of the boards"
+                raise InputError(
+                    f"{where + ': ' if where else ''}targets {printable(other)!r} and {printable(target)!r} would "
+                    f"both be exported as {name!r}: rename one of the boards"
                 )
             self._names[target] = name
         return name

@@ -7,13 +7,15 @@ import argparse
 import logging
 import os
 import sys
+from collections.abc import Iterator, Sequence
+from contextlib import ExitStack, contextmanager, suppress
 from pathlib import Path
 
 from ...camera import CameraModel
 from ...config import ConfigValueError, implausible_length_hint
 from ...config.dictionaries import dictionary_id
 from ...errors import ConfigError, InputError, OutputError, SourceError, printable
-from ...run.paths import check_paths, spec_inputs
+from ...run.paths import Named, OutDirLock, check_paths, spec_inputs
 from .observe import observe_sources
 from .recording import MapRecording
 from .report import board_snippet, format_report, format_summary, write_layout_toml, write_layout_yaml
@@ -44,6 +46,20 @@ class MapOutputs:
         stem = out.with_suffix("")
         self.report = stem.with_name(stem.name + "_report.md")
         self.rrd = rrd if rrd is not None else out.with_suffix(".rrd")
+        self.rrd_given = rrd is not None
+
+    def option(self, path: Path) -> str:
+        """The option that named ``path``: ``--rrd`` for a recording given by ``--rrd``, else ``--out``."""
+        return "--rrd" if self.rrd_given and path == self.rrd else "--out"
+
+    def folders(self) -> list[tuple[str, Path]]:
+        """(option, folder) of each folder the outputs go in, once each (--out's first)."""
+        found: list[tuple[str, Path]] = []
+        for option, path in (("--out", self.primary), (self.option(self.rrd), self.rrd)):
+            folder = path.parent
+            if all(os.path.abspath(folder) != os.path.abspath(other) for _, other in found):
+                found.append((option, folder))
+        return found
 
     def named(self) -> list[tuple[str, Path]]:
         """(what, path) of every output, for messages and the report."""
@@ -55,26 +71,30 @@ class MapOutputs:
         ]
 
 
-def map_outputs(out: Path, rrd: Path | None = None) -> MapOutputs:
+def map_outputs(out: Path, rrd: Path | None = None, inputs: Sequence[Named] = ()) -> MapOutputs:
     """The outputs of ``--out`` (and ``--rrd``), checked before any work and without creating anything (a
-    failed run leaves no empty folder): not directories, not one another, their folders creatable and
-    writable, and no file but ``--out`` itself overwritten unless an earlier ``ar-anchor map`` wrote it."""
+    failed run leaves no empty folder): not directories, not one another, not one of ``inputs`` (option,
+    path), their folders creatable and writable, and no file but ``--out`` itself overwritten unless an
+    earlier ``ar-anchor map`` wrote it. Each refusal names the option that gave the path."""
     outputs = MapOutputs(out, rrd)
     named = outputs.named()
     for what, path in named:
-        option = "--rrd" if path == outputs.rrd and rrd is not None else "--out"
+        option = outputs.option(path)
         if path.is_dir():
             raise InputError(f"{option} {printable(path)}: is a directory (the {what} is written there)")
         _check_folder(path, option)
     paths = [path.absolute() for _, path in named]
     if len(set(paths)) < len(paths):
         raise InputError(f"--rrd {printable(outputs.rrd)}: is one of the layout files --out writes")
+    check_paths([(outputs.option(path), path) for _, path in named], inputs)
     ours = _written_by_map(outputs.report)
     for what, path in named:
-        if path != outputs.primary and path.exists() and not ours:
+        if path != outputs.primary and (path.exists() or path.is_symlink()) and not ours:
+            option = outputs.option(path)
+            given = path if option == "--rrd" else out
             raise InputError(
-                f"--out {printable(out)}: would overwrite {printable(path)} (its {what}), which ar-anchor map did "
-                "not write: move that file or give another --out"
+                f"{option} {printable(given)}: would overwrite {printable(path)} (its {what}), which ar-anchor map "
+                f"did not write: move that file or give another {option}"
             )
     return outputs
 
@@ -123,19 +143,55 @@ def _frame_label(names: list[str], several: bool) -> dict[str, str]:
     return out
 
 
+@contextmanager
+def _claimed(outputs: MapOutputs) -> Iterator[None]:
+    """Create the outputs' folders and hold each one's lock (:class:`~ar_anchor.run.paths.OutDirLock`: one run per
+    output folder, as for every command) until the block ends; folders this call created are removed again
+    when the block fails (a failed run leaves none)."""
+    created: list[Path] = []
+    with ExitStack() as stack:
+        try:
+            for option, folder in outputs.folders():
+                missing = []
+                probe = folder
+                while not probe.exists() and probe != probe.parent:
+                    missing.append(probe)
+                    probe = probe.parent
+                try:
+                    folder.mkdir(parents=True, exist_ok=True)
+                except OSError as err:
+                    raise OutputError(
+                        f"{option} {printable(outputs.primary if option == '--out' else outputs.rrd)}: cannot create "
+                        f"{printable(folder)} ({err.strerror or err})"
+                    ) from None
+                created += missing
+                stack.enter_context(OutDirLock(folder, option))
+            yield
+        except BaseException:
+            stack.close()  # the locks go first: then the folders are empty
+            for folder in created:
+                with suppress(OSError):
+                    folder.rmdir()
+            raise
+
+
 def run_map(args: argparse.Namespace) -> int:
     """``ar-anchor map``: build the map, write its files, print the summary; the exit code."""
     quiet = bool(getattr(args, "quiet", False))
     _check_options(args)
-    outputs = map_outputs(Path(args.out), getattr(args, "rrd", None))
     sources = [str(s) for s in args.sources]
-    camera = CameraModel.from_yaml(args.camera)
     inputs = [("--camera", Path(args.camera))]
     for source in sources:
         inputs += spec_inputs(source, "VIDEO")
-    named = [("--rrd" if path == outputs.rrd else "--out", path) for _, path in outputs.named()]
-    check_paths(named, inputs)
+    outputs = map_outputs(Path(args.out), getattr(args, "rrd", None), inputs)
+    camera = CameraModel.from_yaml(args.camera)
+    with _claimed(outputs):
+        return _run_map(args, outputs, sources, camera, quiet)
 
+
+def _run_map(
+    args: argparse.Namespace, outputs: MapOutputs, sources: list[str], camera: CameraModel, quiet: bool
+) -> int:
     def progress(message: str) -> None:
         if not quiet:
             print(f"ar-anchor: {message}", file=sys.stderr, flush=True)
@@ -190,13 +246,6 @@ def run_map(args: argparse.Namespace) -> int:
         layout_name=outputs.primary.name,
         frame_label=lambda name: labels.get(name, name),
     )
-    for folder in {outputs.primary.parent, outputs.rrd.parent}:  # (created only now: a failed run leaves none)
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise OutputError(
-                f"--out {printable(outputs.primary)}: cannot create {printable(folder)} ({err.strerror})"
-            ) from None
     recording = MapRecording(outputs.rrd, spawn=bool(getattr(args, "spawn", False)))
     succeeded = False
     try:

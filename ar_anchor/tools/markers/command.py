@@ -11,10 +11,13 @@ import argparse
 import logging
 import os
 from collections.abc import Sequence
+from contextlib import suppress
 from pathlib import Path
 
-from ...errors import InputError, OutputError
+from ...errors import InputError, OutputError, printable
 from ...run.outputs import prepare_out_dir
+from ...run.paths import OutDirLock
+from ...run.written import WrittenFiles
 from .draw import FORMATS, render_pdf, render_png, render_svg
 from .layout import RULER_MM
 from .sheet import MarkerSheet, parse_ids
@@ -39,16 +42,55 @@ def write_sheet(sheet: MarkerSheet, out: str | os.PathLike[str], fmt: str = "pdf
         blobs = render_png(sheet, dpi)
     names = [f"{stem}.{fmt}"] if len(blobs) == 1 else [f"{stem}_p{n}.{fmt}" for n in range(1, len(blobs) + 1)]
     config = sheet.config_toml(names, fmt, dpi).encode("utf-8")
-    prepare_out_dir(out)
+    files = [*zip(names, blobs), (f"{stem}.toml", config)]
+    created = not out.exists()
+    out = prepare_out_dir(out)
+    try:
+        with OutDirLock(out):  # one run per output folder, as for every command
+            return _write_files(out, files)
+    except InputError:
+        if created:  # refused before anything was written: no empty folder left behind
+            with suppress(OSError):
+                out.rmdir()
+        raise
+
+
+def _same_content(path: Path, blob: bytes) -> bool:
+    """Is ``path`` a regular file holding exactly ``blob`` (replacing it loses nothing)?"""
+    try:
+        if path.is_symlink() or not path.is_file() or path.stat().st_size != len(blob):
+            return False
+        return path.read_bytes() == blob
+    except OSError:
+        return False
+
+
+def _write_files(out: Path, files: list[tuple[str, bytes]]) -> list[Path]:
+    """Write ``files`` (name, bytes) into ``out``, replacing only files markers wrote there (listed in
+    ``.ar-anchor-markers.json``) or that hold the same bytes: any other file in the way refuses the whole sheet
+    before anything is written."""
+    manifest = WrittenFiles(out, "markers")
+    theirs = [name for name, blob in files if name in manifest.theirs([name]) and not _same_content(out / name, blob)]
+    if theirs:
+        shown = ", ".join(printable(name) for name in theirs)
+        them = "them" if len(theirs) > 1 else "it"
+        raise InputError(
+            f"--out {printable(out)}: holds {shown}, which ar-anchor markers did not write; the sheet would "
+            f"overwrite {them}: move {them} or give another --out"
+        )
     written = []
-    for name, blob in [*zip(names, blobs), (f"{stem}.toml", config)]:
-        path = out / name
-        try:
-            path.write_bytes(blob)
-        except OSError as err:
-            raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
-        written.append(path)
-        log.info("wrote %s (%d bytes)", path, len(blob))
+    try:
+        for name, blob in files:
+            path = out / name
+            try:
+                path.write_bytes(blob)
+            except OSError as err:
+                raise OutputError(f"{printable(path)}: cannot write ({err.strerror or err})") from None
+            manifest.record(name)
+            written.append(path)
+            log.info("wrote %s (%d bytes)", path, len(blob))
+    finally:
+        manifest.save()
     return written
 
 
