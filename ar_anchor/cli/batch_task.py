@@ -387,28 +387,35 @@ def _abandon(ray: Any) -> None:
             atexit.unregister(sys.modules[module].shutdown)
 
 
-def _join(ray: Any, address: str) -> None:
+def _join(ray: Any, address: str) -> threading.Event:
     """``ray.init(address)`` within :data:`RAY_CONNECT_TIMEOUT_S` (on a thread: Ctrl-C is not held up), Ray's
-    lines to the debug log; :class:`InputError` naming ``--ray`` when it fails or takes longer."""
+    lines to the debug log; :class:`InputError` naming ``--ray`` when it fails or takes longer.
+
+    The thread lives on until the returned event is set (after ``ray.shutdown``): a process Ray starts is
+    bound to the thread that started it (its parent-death signal) and would end with it."""
     outcome: dict[str, BaseException] = {}
+    joined, release = threading.Event(), threading.Event()
 
     def init() -> None:
         try:
             ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING)
         except BaseException as err:  # noqa: BLE001 - handed to the main thread
             outcome["error"] = err
+            return
+        joined.set()
+        release.wait()
 
     thread = threading.Thread(target=init, name="ray-connect", daemon=True)
     deadline = time.monotonic() + RAY_CONNECT_TIMEOUT_S
     try:
         with _stderr_to_log():
             thread.start()
-            while thread.is_alive() and time.monotonic() < deadline:
+            while thread.is_alive() and not joined.is_set() and time.monotonic() < deadline:
                 thread.join(0.1)
     except BaseException:
         _abandon(ray)
         raise
-    if thread.is_alive():
+    if thread.is_alive() and not joined.is_set():
         _abandon(ray)
         raise InputError(
             f"--ray {printable(address)}: the address answers but no Ray cluster was joined within "
@@ -419,6 +426,7 @@ def _join(ray: Any, address: str) -> None:
         first = (str(err).strip().splitlines() or [""])[0]
         raise InputError(f"--ray {printable(address)}: cannot join the Ray cluster ({type(err).__name__}: "
                          f"{printable(first)})")  # fmt: skip
+    return release
 
 
 @contextlib.contextmanager
@@ -431,17 +439,22 @@ def ray_session(address: str, cpus: int | None) -> Iterator[Any]:
     if ray.is_initialized():  # (a caller's own Ray)
         yield ray
         return
+    release = None
     if address:
         endpoint = _ray_endpoint(ray, address)
         if endpoint is not None:
             _probe(address, *endpoint)
-        _join(ray, address)
+        release = _join(ray, address)
     else:
         ray.init(num_cpus=cpus or usable_cores(), include_dashboard=False, logging_level=logging.WARNING)
     try:
         yield ray
     finally:
-        ray.shutdown()
+        try:
+            ray.shutdown()
+        finally:
+            if release is not None:
+                release.set()
 
 
 def _ray_task(task: BatchTask) -> dict[str, Any]:

@@ -481,3 +481,29 @@ def test_the_users_own_runs_csv_is_never_replaced_without_pyarrow(media, tmp_pat
     assert "holds runs.csv, which no ar-anchor batch wrote" in _one_error_line(result.stderr)
     assert list(csv.reader((out / "runs.csv").open())) == [["a", "b"], ["1", "2"]]
     assert sorted(p.name for p in out.iterdir()) == ["runs.csv"]
+
+
+def test_a_joined_cluster_keeps_the_thread_that_joined_it_until_ray_shuts_down(monkeypatch):
+    # given a stand-in Ray that joins at once (what ray.init starts is bound to the thread that called it)
+    from ar_anchor.cli.batch_task import ray_session
+
+    seen: dict[str, object] = {}
+
+    def init(**kwargs):
+        seen["thread"], seen["address"] = threading.current_thread(), kwargs["address"]
+
+    fake = _fake_ray(init)
+    fake.shutdown = lambda *a, **k: seen.setdefault("shutdown_while_alive", seen["thread"].is_alive())  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        address = f"127.0.0.1:{server.getsockname()[1]}"
+        # when
+        with ray_session(address, None) as ray:
+            # then: joined, on a thread of its own that is still there
+            assert ray is fake and seen["address"] == address
+            thread = seen["thread"]
+            assert thread is not threading.current_thread() and thread.is_alive()
+    # and Ray is shut down while that thread lives, which then ends
+    assert seen["shutdown_while_alive"] is True
+    thread.join(5)
+    assert not thread.is_alive()
