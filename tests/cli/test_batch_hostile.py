@@ -192,6 +192,31 @@ def test_a_second_batch_on_a_busy_out_is_refused_and_the_lock_is_gone_after_a_ba
     assert not (out / ".ar-anchor.lock").exists() and _rows(out)["clip"]["status"] == "ok"
 
 
+def test_two_batches_on_one_out_the_second_is_refused_and_the_first_completes(media, tmp_path):
+    # given a batch of five clips under way
+    clips = [str(_clip(media, tmp_path / f"c{k}.mp4")) for k in range(5)]
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "ar_anchor", "-q", "batch", *clips, "--camera", str(media / "camera.yml"),
+               "--out", str(out), "--jobs", "1"]  # fmt: skip
+    first = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not (out / ".ar-anchor.lock").exists() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    # when a second batch is started on the same --out (the first held there meanwhile: no race)
+    first.send_signal(signal.SIGSTOP)
+    try:
+        second = _batch("-q", clips[0], "--camera", str(media / "camera.yml"), "--out", str(out))
+    finally:
+        first.send_signal(signal.SIGCONT)
+    _, stderr = first.communicate(timeout=120)
+    # then: the second is refused; the first replays each recording once, all ok
+    _clean(second, EXIT_USAGE)
+    assert "another run (pid" in _one_error_line(second.stderr)
+    assert first.returncode == 0, stderr
+    assert [row["status"] for row in _rows(out).values()] == ["ok"] * 5
+    assert not (out / ".ar-anchor.lock").exists()
+
+
 # ============================================================================ 4. names escaped in every line
 
 
