@@ -8,10 +8,14 @@ images it matches are, together, one image-sequence recording (the glob itself, 
 ``name``; relative paths are relative to the manifest's folder).
 
 Each recording is replayed as ``ar-anchor replay`` would (the task, :mod:`.batch_task`, calls the same
-command function), into ``OUT/<name>/`` (name: the file stem, or the folder's name; ``_2``, ``_3``, ... when
-two collide), and gets one row of ``OUT/runs.parquet`` (``runs.csv`` without pyarrow). A recording whose
-folder holds a completed run of the same source (same files, sizes and times) with the same options,
-camera and config (``batch.json`` beside ``summary.json``) is skipped; ``--force`` replays it again.
+command function), into ``OUT/<name>/`` (name: the file stem, or the folder's name, made safe as one folder
+inside ``OUT``; ``_2``, ``_3``, ... when two collide or a name is one of ``OUT``'s own files), and gets one row
+of ``OUT/runs.parquet`` (``runs.csv`` without pyarrow). A recording whose folder holds a completed run of the
+same source (same files, sizes and times) with the same options, camera and config (``batch.json`` beside
+``summary.json``) is skipped; ``--force`` replays it again.
+
+``OUT`` is locked for the batch (replay's lock), and checked before anything is written: no file there that a
+batch or a run did not write is replaced, and no recording is written into its own image folder.
 """
 
 from __future__ import annotations
