@@ -487,11 +487,20 @@ def _inside(path: Path, folder: Path) -> bool:
     return path == folder or folder in path.parents
 
 
+def _run_command(folder: Path) -> str:
+    """The command whose run ``folder`` holds (its ``summary.json``'s ``command``; ``?`` when it says none)."""
+    try:
+        command = json.loads((folder / "summary.json").read_text(encoding="utf-8")).get("command")
+    except (OSError, ValueError, AttributeError):
+        return "?"
+    return command if isinstance(command, str) else "?"
+
+
 def check_out(out: Path, recordings: Sequence[Recording]) -> None:
     """What a batch into ``out`` would write, checked before anything is: no recording's folder is its image
     folder or inside it (its outputs would become its frames), and no file of ``out`` that a batch or a run
-    did not write is replaced (``runs.parquet``, a recording folder's ``poses.csv``, ...). :class:`InputError`
-    naming ``--out`` and the file."""
+    did not write is replaced (``runs.parquet``, a recording folder's ``poses.csv``, ...), nor a run of another
+    command (a ``live --record`` session's ``raw.mkv``). :class:`InputError` naming ``--out`` and the file."""
     from ..run.paths import _previous_run_here
 
     where = out.resolve()
@@ -519,7 +528,17 @@ def check_out(out: Path, recordings: Sequence[Recording]) -> None:
                 f"--out {printable(out)}: holds {printable(recording.name)}, which is not a folder a batch made; "
                 f"recording {printable(recording.name)} would be written there: give a new or empty folder"
             )
-        if not folder.is_dir() or _previous_run_here(folder):
+        if not folder.is_dir():
+            continue
+        if _previous_run_here(folder):
+            command = _run_command(folder)
+            if command != "replay" and not (folder / STAMP_FILE).is_file():  # (replay would clear it: a live
+                # session's raw.mkv is the user's only copy; batch.json: a batch wrote it, whatever its summary says)
+                what = "a run" if command == "?" else f"a run of `ar-anchor {printable(command)}`"
+                raise InputError(
+                    f"--out {printable(folder)}: holds {what} (its summary.json) that no batch wrote; recording "
+                    f"{printable(recording.name)} would replace its files: give another --out"
+                )
             continue
         names = ("poses.csv", "summary.json", "recording.rrd", "frames.csv", STAMP_FILE)
         theirs = [name for name in names if (folder / name).exists() or (folder / name).is_symlink()]

@@ -6,6 +6,7 @@ manifests checked up front, FIFOs and empty globs named as such, ``--out`` never
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import socket
@@ -164,6 +165,28 @@ def test_a_recording_folder_holding_the_users_files_is_never_written(media, tmp_
     assert_clean_exit(result, {EXIT_USAGE})
     assert "holds poses.csv, batch.json, which no ar-anchor run wrote" in _one_error_line(result.stderr)
     assert (folder / "batch.json").read_text() == "mine" and (folder / "poses.csv").read_text() == "mine"
+
+
+def test_a_recording_folder_holding_another_commands_run_is_never_cleared(media, tmp_path):
+    # given --out/clip holding a live session: its summary.json and its raw recording, the user's only copy
+    folder = tmp_path / "out" / "clip"
+    demo = subprocess.run(
+        [sys.executable, "-m", "ar_anchor", "-q", "demo", "--frames", "2", "--out", str(folder)],
+        capture_output=True, text=True, check=False, timeout=120,
+    )  # fmt: skip
+    assert demo.returncode == 0, demo.stderr
+    summary = json.loads((folder / "summary.json").read_text())
+    (folder / "summary.json").write_text(json.dumps({**summary, "command": "live"}))
+    (folder / "raw.mkv").write_bytes(b"the only copy")
+    before = _tree(folder)
+    # when a batch would replay clip.mp4 into it
+    camera = str(media / "camera.yml")
+    result = run_main(["-q", "batch", str(media / "clip.mp4"), "--camera", camera, "--out", str(tmp_path / "out")])
+    # then
+    assert_clean_exit(result, {EXIT_USAGE})
+    line = _one_error_line(result.stderr)
+    assert f"--out {folder}: holds a run of `ar-anchor live` (its summary.json) that no batch wrote" in line, line
+    assert _tree(folder) == before
 
 
 # ============================================================================ 3. one batch per --out
