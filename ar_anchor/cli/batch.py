@@ -663,7 +663,7 @@ def _replay_all(
         engine = "ray" if ray_address is not None else f"{min(jobs, max(1, len(tasks)))} local process(es)"
         print(
             f"{len(rows)} recording(s): {ok} replayed, {tally.skipped} skipped (already done), {len(failed)} failed"
-            f" in {wall:.1f} s ({engine}); table: {table}"
+            f" in {wall:.1f} s ({engine}); table: {printable(table)}"
         )
     if interrupted:
         stop = KeyboardInterrupt()
@@ -671,7 +671,7 @@ def _replay_all(
         raise stop
     if failed:
         names = ", ".join(printable(row["name"]) for row in failed[:5]) + (", ..." if len(failed) > 5 else "")
-        print(f"ar-anchor: error: {len(failed)} of {len(rows)} recording(s) failed: {names} (see {table})",
+        print(f"ar-anchor: error: {len(failed)} of {len(rows)} recording(s) failed: {names} (see {printable(table)})",
               file=sys.stderr)  # fmt: skip
         return EXIT_FAILURE
     return EXIT_OK

@@ -253,11 +253,13 @@ def test_worker_lines_escape_file_names_and_bidi_controls(media, tmp_path):
     (shots / "001x\nar-anchor: error: forged\x1b[2J.png").write_bytes(b"not a png")
     (tmp_path / "bad\u202egpj.mp4").write_bytes((media / "clip.mp4").read_bytes()[:600])
     # when
+    out = tmp_path / "out\x1b[31m\nx"  # (and --out too: the summary and error lines name the table)
     result = _batch(str(shots), str(tmp_path / "bad\u202egpj.mp4"), "--camera", str(media / "camera.yml"),
-                    "--out", str(tmp_path / "out"))  # fmt: skip
+                    "--out", str(out))  # fmt: skip
     # then: the broken video fails its row; every line is one line, escaped
     _clean(result, EXIT_FAILURE)
-    assert "\x1b" not in result.stderr and "\u202e" not in result.stderr + result.stdout
+    assert "\x1b" not in result.stderr + result.stdout and "\u202e" not in result.stderr + result.stdout
+    assert len(result.stdout.strip().splitlines()) == 1 and "out\\x1b[31m\\nx" in result.stdout
     assert not any("forged" in line for line in result.stderr.splitlines() if line.startswith("ar-anchor: error:"))
     assert "001x\\nar-anchor: error: forged\\x1b[2J.png" in result.stderr
     assert "bad\\u202egpj" in result.stderr
