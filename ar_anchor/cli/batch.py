@@ -253,7 +253,9 @@ def read_manifest(path: Path) -> list[Recording]:
         if not row.get("source"):
             raise InputError(f"--manifest {printable(path)}: line {number}: empty source")
         source = resolved(row["source"])
-        if not (_is_glob(source) or Path(source).is_file() or Path(source).is_dir()):
+        if _is_glob(source):
+            _check_manifest_glob(path, number, source)
+        elif not (Path(source).is_file() or Path(source).is_dir()):
             raise InputError(
                 f"--manifest {printable(path)}: line {number}: {printable(source)}: {_not_a_source(Path(source))}"
             )
@@ -271,6 +273,20 @@ def read_manifest(path: Path) -> list[Recording]:
     if not recordings:
         raise InputError(f"--manifest {printable(path)}: no recordings in it")
     return [Recording(r.source, n, r.camera, r.config) for r, n in zip(recordings, _unique(names), strict=True)]
+
+
+def _check_manifest_glob(manifest: Path, number: int, pattern: str) -> None:
+    """A manifest row's glob is one image sequence (as ``replay`` takes it): it must match an image file."""
+    matches = [p for p in glob.glob(pattern) if Path(p).is_file()]
+    if any(Path(p).suffix.lower() in IMAGE_EXTENSIONS for p in matches):
+        return
+    where = f"--manifest {printable(manifest)}: line {number}: {printable(pattern)}"
+    if not matches:
+        raise InputError(f"{where}: no file matches this pattern")
+    raise InputError(
+        f"{where}: the pattern matches {len(matches)} file(s), none an image (a glob in a manifest row is one "
+        "image sequence; list videos one per row)"
+    )
 
 
 def find_recordings(sources: Sequence[str], manifest: Path | None) -> list[Recording]:

@@ -355,6 +355,28 @@ def test_a_glob_that_matches_nothing_says_so(tmp_path):
     assert _one_error_line(no_media.stderr).endswith("*.txt: the pattern matches 1 file(s), none a video or an image")
 
 
+@pytest.mark.parametrize(
+    "pattern, message",
+    [
+        ("none/*.mp4", "none/*.mp4: no file matches this pattern"),
+        ("clips/*.mp4", "clips/*.mp4: the pattern matches 1 file(s), none an image (a glob in a manifest row is one"),
+    ],
+)
+def test_a_manifest_glob_that_matches_no_image_says_so_before_anything_runs(tmp_path, pattern, message):
+    # given a manifest row whose glob matches nothing, or only a video (a row's glob is one image sequence)
+    (tmp_path / "clips").mkdir()
+    (tmp_path / "clips" / "a.mp4").write_bytes(b"x")
+    (tmp_path / "camera.yml").write_text("x")
+    (tmp_path / "m.csv").write_text(f"source,camera\n{pattern},camera.yml\n")
+    # when
+    result = run_main(["-q", "batch", "--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path / "out")])
+    # then: no line about images that are not there; nothing written
+    assert_clean_exit(result, {EXIT_USAGE})
+    line = _one_error_line(result.stderr)
+    assert f"--manifest {tmp_path / 'm.csv'}: line 2: {tmp_path}/{message}" in line, line
+    assert not (tmp_path / "out").exists()
+
+
 # ============================================================================ 10. --out inside an image source
 
 
