@@ -429,6 +429,21 @@ def _join(ray: Any, address: str) -> threading.Event:
     return release
 
 
+def _start_local(ray: Any, cpus: int | None) -> None:
+    """A local Ray of ``cpus`` CPUs (default: the usable cores), Ray's lines meanwhile to the debug log.
+    ``RAY_ADDRESS`` would make ``ray.init`` join that cluster instead (and refuse ``num_cpus``): it is set aside
+    meanwhile, with a warning."""
+    joined = os.environ.pop("RAY_ADDRESS", None)
+    if joined:
+        log.warning("--ray: RAY_ADDRESS=%s ignored: --ray alone starts a local Ray (--ray auto joins it)", joined)
+    try:
+        with _stderr_to_log():  # (Ray's own lines while it starts: to the debug log)
+            ray.init(num_cpus=cpus or usable_cores(), include_dashboard=False, logging_level=logging.WARNING)
+    finally:
+        if joined is not None:
+            os.environ["RAY_ADDRESS"] = joined
+
+
 @contextlib.contextmanager
 def ray_session(address: str, cpus: int | None) -> Iterator[Any]:
     """Ray for a batch, shut down when the block ends (unless it was running before): the cluster at
@@ -446,7 +461,7 @@ def ray_session(address: str, cpus: int | None) -> Iterator[Any]:
             _probe(address, *endpoint)
         release = _join(ray, address)
     else:
-        ray.init(num_cpus=cpus or usable_cores(), include_dashboard=False, logging_level=logging.WARNING)
+        _start_local(ray, cpus)
     try:
         yield ray
     finally:

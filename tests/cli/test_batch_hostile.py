@@ -579,3 +579,23 @@ def test_a_joined_cluster_keeps_the_thread_that_joined_it_until_ray_shuts_down(m
     assert seen["shutdown_while_alive"] is True
     thread.join(5)
     assert not thread.is_alive()
+
+
+def test_ray_alone_starts_a_local_ray_even_with_ray_address_set(monkeypatch, caplog):
+    # given RAY_ADDRESS in the environment (ray.init would join it, and refuse num_cpus: was an internal error)
+    from ar_anchor.cli.batch_task import ray_session
+
+    seen: dict[str, object] = {}
+
+    def init(**kwargs):
+        seen["kwargs"], seen["env"] = kwargs, os.environ.get("RAY_ADDRESS")
+
+    monkeypatch.setitem(sys.modules, "ray", _fake_ray(init))
+    monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
+    # when
+    with caplog.at_level("WARNING", logger="ar_anchor"), ray_session("", 2):
+        pass
+    # then: a local Ray of 2 CPUs, RAY_ADDRESS set aside meanwhile (and said so), then put back
+    assert seen["kwargs"]["num_cpus"] == 2 and "address" not in seen["kwargs"] and seen["env"] is None
+    assert os.environ["RAY_ADDRESS"] == "127.0.0.1:1"
+    assert "RAY_ADDRESS=127.0.0.1:1 ignored: --ray alone starts a local Ray" in caplog.text
