@@ -49,15 +49,23 @@ class OutputError(ArAnchorError):
     """An output (recording, CSV, video) cannot be written."""
 
 
+# bidirectional controls: a right-to-left override (U+202E) makes "clip\u202egpj.mp4" show as "clip4pm.jpg"
+_BIDI = frozenset((0x061C, 0x200E, 0x200F, *range(0x202A, 0x202F), *range(0x2066, 0x206A)))
+
+
 def printable(text: object) -> str:
     """``text`` (a path, a file name, a value from a file) safe to print on one terminal line: control
-    characters (newlines, carriage returns, ANSI escapes) and bytes that are not UTF-8 are shown escaped,
-    as Python would spell them (``\\n``, ``\\x1b``, ``\\udcff``); anything else is left as it is."""
+    characters (newlines, carriage returns, ANSI escapes), bidirectional controls (U+202A-U+202E,
+    U+2066-U+2069, U+200E/U+200F, U+061C: they reorder what follows them) and bytes that are not UTF-8 are
+    shown escaped, as Python would spell them (``\\n``, ``\\x1b``, ``\\u202e``, ``\\udcff``); anything else is
+    left as it is."""
     out = []
     for ch in str(text):
         code = ord(ch)
-        if code < 0x20 or code == 0x7F or 0x80 <= code < 0xA0 or 0xD800 <= code < 0xE000:
-            out.append(repr(ch)[1:-1] if code < 0xD800 else f"\\u{code:04x}")
+        if code < 0x20 or code == 0x7F or 0x80 <= code < 0xA0:
+            out.append(repr(ch)[1:-1])
+        elif 0xD800 <= code < 0xE000 or code in _BIDI:
+            out.append(f"\\u{code:04x}")
         else:
             out.append(ch)
     return "".join(out)

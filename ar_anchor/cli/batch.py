@@ -8,15 +8,20 @@ images it matches are, together, one image-sequence recording (the glob itself, 
 ``name``; relative paths are relative to the manifest's folder).
 
 Each recording is replayed as ``ar-anchor replay`` would (the task, :mod:`.batch_task`, calls the same
-command function), into ``OUT/<name>/`` (name: the file stem, or the folder's name; ``_2``, ``_3``, ... when
-two collide), and gets one row of ``OUT/runs.parquet`` (``runs.csv`` without pyarrow). A recording whose
-folder holds a completed run of the same source (same files, sizes and times) with the same options,
-camera and config (``batch.json`` beside ``summary.json``) is skipped; ``--force`` replays it again.
+command function), into ``OUT/<name>/`` (name: the file stem, or the folder's name, made safe as one folder
+inside ``OUT``; ``_2``, ``_3``, ... when two collide or a name is one of ``OUT``'s own files), and gets one row
+of ``OUT/runs.parquet`` (``runs.csv`` without pyarrow). A recording whose folder holds a completed run of the
+same source (same files, sizes and times) with the same options, camera and config (``batch.json`` beside
+``summary.json``) is skipped; ``--force`` replays it again.
+
+``OUT`` is locked for the batch (replay's lock), and checked before anything is written: no file there that a
+batch or a run did not write is replaced, and no recording is written into its own image folder.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import glob
 import hashlib
@@ -45,6 +50,7 @@ BATCH_ONLY = frozenset(
 )
 RUNS_FILE, RUNS_CSV = "runs.parquet", "runs.csv"
 STAMP_FILE = "batch.json"
+RESERVED_NAMES = (RUNS_FILE, RUNS_CSV, ".ar-anchor.lock")  # files of --out itself: no recording is named so
 _GLOB_CHARS = frozenset("*?[")
 
 
@@ -141,29 +147,50 @@ def _expand(text: str) -> list[tuple[str, str]]:
     if _is_glob(text):
         matches = sorted(Path(p) for p in glob.glob(text) if Path(p).is_file())
         videos = [p for p in matches if p.suffix.lower() in VIDEO_EXTENSIONS]
-        found = [(str(p), p.stem) for p in videos]
+        found = [(str(p), _default_name(str(p))) for p in videos]
         if any(p.suffix.lower() in IMAGE_EXTENSIONS for p in matches):
-            found.append((text, Path(text).parent.name or "images"))
+            found.append((text, _default_name(text)))
         if not found:
-            raise InputError(f"{printable(text)}: the glob matches no video or image file")
+            if not matches:
+                raise InputError(f"{printable(text)}: no file matches this pattern")
+            raise InputError(f"{printable(text)}: the pattern matches {len(matches)} file(s), none a video or an image")
         return found
     path = Path(text)
     if path.is_dir():
         entries = sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
         videos = [p for p in entries if p.suffix.lower() in VIDEO_EXTENSIONS]
         if videos:
-            return [(str(p), p.stem) for p in videos]
+            return [(str(p), _default_name(str(p))) for p in videos]
         if any(p.suffix.lower() in IMAGE_EXTENSIONS for p in entries):
-            return [(text, path.resolve().name)]
+            return [(text, _default_name(text))]
         raise InputError(f"{printable(text)}: no video or image files in this folder")
     if path.is_file():
-        return [(text, path.stem)]
-    raise InputError(f"{printable(text)}: no such file or folder (and not a glob matching anything)")
+        return [(text, _default_name(text))]
+    raise InputError(f"{printable(text)}: {_not_a_source(path)}")
+
+
+def _not_a_file(path: Path, expected: str) -> str:
+    """Why ``path`` is not the regular file (or folder) ``expected``: missing, or what it is (never opened: a
+    named pipe would block)."""
+    from ..sources.checks import file_kind
+
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        return "no such file" + (" or folder" if "folder" in expected else "")
+    except OSError as err:
+        return f"cannot be examined ({err.strerror or err})"
+    return f"is {file_kind(mode)}, not {expected} (not supported)"
+
+
+def _not_a_source(path: Path) -> str:
+    return _not_a_file(path, "a video file, an image folder or a glob")
 
 
 def _unique(names: Sequence[str]) -> list[str]:
-    """``names`` made unique (case-insensitively): the second ``clip`` is ``clip_2``, the third ``clip_3``."""
-    taken: set[str] = set()
+    """``names`` made unique (case-insensitively): the second ``clip`` is ``clip_2``, the third ``clip_3``; a name
+    of a file the batch writes into ``--out`` itself (``runs.parquet``, ``runs.csv``, the lock) gets ``_2`` too."""
+    taken: set[str] = {name.lower() for name in RESERVED_NAMES}
     out = []
     for name in names:
         base = name.strip() or "recording"
@@ -176,10 +203,25 @@ def _unique(names: Sequence[str]) -> list[str]:
     return out
 
 
+def _unsafe(ch: str) -> bool:
+    code = ord(ch)
+    return ch in '/\\:<>"|?*' or code < 0x20 or code == 0x7F or 0x80 <= code < 0xA0 or 0xD800 <= code < 0xE000
+
+
 def _safe_name(name: str) -> str:
-    """A manifest's ``name`` as one folder name (no separators, not . or ..)."""
-    cleaned = "".join("_" if ch in '/\\:<>"|?*' or ord(ch) < 32 else ch for ch in name).strip()
+    """A recording's name (a manifest's ``name``, a file stem, a folder's name) as one folder name inside
+    ``--out``: separators, control characters and bytes that are not UTF-8 become ``_``; empty, ``.`` and
+    ``..`` become ``recording``."""
+    cleaned = "".join("_" if _unsafe(ch) else ch for ch in name).strip()
     return "recording" if cleaned in ("", ".", "..") else cleaned
+
+
+def _default_name(source: str) -> str:
+    """The name of a recording whose name is not given: a glob's folder, a folder's name, a file's stem."""
+    if _is_glob(source):
+        return _safe_name(Path(source).parent.name or "images")
+    path = Path(source)
+    return _safe_name(path.resolve().name if path.is_dir() else path.stem)
 
 
 def read_manifest(path: Path) -> list[Recording]:
@@ -211,18 +253,40 @@ def read_manifest(path: Path) -> list[Recording]:
         if not row.get("source"):
             raise InputError(f"--manifest {printable(path)}: line {number}: empty source")
         source = resolved(row["source"])
-        if not (_is_glob(source) or Path(source).exists()):
+        if _is_glob(source):
+            _check_manifest_glob(path, number, source)
+        elif not (Path(source).is_file() or Path(source).is_dir()):
             raise InputError(
-                f"--manifest {printable(path)}: line {number}: {printable(source)}: no such file or folder"
+                f"--manifest {printable(path)}: line {number}: {printable(source)}: {_not_a_source(Path(source))}"
             )
         camera = Path(resolved(row["camera"])) if row.get("camera") else None
         config = Path(resolved(row["config"])) if row.get("config") else None
-        name = _safe_name(row["name"]) if row.get("name") else (Path(source).stem or Path(source).parent.name)
+        for column, file in (("camera", camera), ("config", config)):
+            if file is not None and not file.is_file():
+                raise InputError(
+                    f"--manifest {printable(path)}: line {number}: {column} {printable(file)}: "
+                    f"{_not_a_file(file, 'a regular file')}"
+                )
+        name = _safe_name(row["name"]) if row.get("name") else _default_name(source)
         recordings.append(Recording(source, name, camera, config))
         names.append(name)
     if not recordings:
         raise InputError(f"--manifest {printable(path)}: no recordings in it")
     return [Recording(r.source, n, r.camera, r.config) for r, n in zip(recordings, _unique(names), strict=True)]
+
+
+def _check_manifest_glob(manifest: Path, number: int, pattern: str) -> None:
+    """A manifest row's glob is one image sequence (as ``replay`` takes it): it must match an image file."""
+    matches = [p for p in glob.glob(pattern) if Path(p).is_file()]
+    if any(Path(p).suffix.lower() in IMAGE_EXTENSIONS for p in matches):
+        return
+    where = f"--manifest {printable(manifest)}: line {number}: {printable(pattern)}"
+    if not matches:
+        raise InputError(f"{where}: no file matches this pattern")
+    raise InputError(
+        f"{where}: the pattern matches {len(matches)} file(s), none an image (a glob in a manifest row is one "
+        "image sequence; list videos one per row)"
+    )
 
 
 def find_recordings(sources: Sequence[str], manifest: Path | None) -> list[Recording]:
@@ -260,8 +324,8 @@ def _source_files(source: str) -> list[Path]:
     if _is_glob(source):
         return sorted(Path(p) for p in glob.glob(source))
     path = Path(source)
-    if path.is_dir():
-        return sorted(p for p in path.iterdir() if p.is_file())
+    if path.is_dir():  # (its images only: nothing else in the folder is a frame)
+        return sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
     return [path]
 
 
@@ -328,27 +392,75 @@ def empty_row(recording: Recording, out_dir: Path) -> dict[str, Any]:
     return row
 
 
+def _pyarrow() -> Any:
+    """``pyarrow`` (and its parquet module loaded), or None when it is not installed."""
+    try:
+        import pyarrow
+        import pyarrow.parquet  # noqa: F401
+    except ImportError:
+        return None
+    return pyarrow
+
+
+def runs_path(out: Path) -> Path:
+    """The runs table a batch into ``out`` writes: ``runs.parquet``, or ``runs.csv`` without pyarrow."""
+    return out / (RUNS_FILE if _pyarrow() is not None else RUNS_CSV)
+
+
+_TABLE_KEYS = frozenset({"name", "source", "status", "error", "out"})  # every batch's table has these columns
+
+
+def _is_runs_table(path: Path) -> bool:
+    """Is ``path`` a runs table a batch wrote (a regular file, not a link, with the table's columns)?"""
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        if path.suffix == ".parquet":
+            names = _pyarrow().parquet.read_schema(path).names
+        else:
+            with open(path, newline="", encoding="utf-8") as handle:
+                names = next(csv.reader(handle), [])
+    except Exception:  # noqa: BLE001 - whatever it is, it is no table of ours
+        return False
+    return _TABLE_KEYS <= set(names)
+
+
+def _text(value: Any) -> Any:
+    """A string made writable as UTF-8 (bytes of a file name that is not UTF-8 spelled ``\\udcff``)."""
+    return value.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(value, str) else value
+
+
 def write_runs(out: Path, rows: list[dict[str, Any]]) -> Path:
     """``out/runs.parquet`` (pyarrow) or ``out/runs.csv`` (without it), rows in the recordings' order; written
-    to a temporary file and renamed over the old table. The path written."""
+    to a temporary file of its own and renamed over the old table. The path written; a failure to write it
+    is an :class:`~ar_anchor.errors.OutputError` naming it."""
+    import secrets
+
+    from ..run.outputs import write_failure
+
+    pa = _pyarrow()
+    path = runs_path(out)
+    cells = [{name: _text(row.get(name)) for name, _ in COLUMNS} for row in rows]
+    tmp = out / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"  # (a new file: never one of the user's)
     try:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-    except ImportError:
-        pa = None
-    if pa is not None:
-        schema = pa.schema([(name, getattr(pa, kind)()) for name, kind in COLUMNS])
-        table = pa.Table.from_pylist([{name: row.get(name) for name, _ in COLUMNS} for row in rows], schema=schema)
-        path, tmp = out / RUNS_FILE, out / (RUNS_FILE + ".tmp")
-        pq.write_table(table, tmp)
-    else:
-        path, tmp = out / RUNS_CSV, out / (RUNS_CSV + ".tmp")
-        with open(tmp, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, [name for name, _ in COLUMNS])
-            writer.writeheader()
-            for row in rows:
-                writer.writerow({name: "" if row.get(name) is None else row[name] for name, _ in COLUMNS})
-    os.replace(tmp, path)
+        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+    except OSError as err:
+        raise write_failure(path, err) from None
+    try:
+        if pa is not None:
+            schema = pa.schema([(column, getattr(pa, kind)()) for column, kind in COLUMNS])
+            pa.parquet.write_table(pa.Table.from_pylist(cells, schema=schema), tmp)
+        else:
+            with open(tmp, "w", newline="", encoding="utf-8") as handle_:
+                writer = csv.DictWriter(handle_, [column for column, _ in COLUMNS])
+                writer.writeheader()
+                for row in cells:
+                    writer.writerow({column: "" if value is None else value for column, value in row.items()})
+        os.replace(tmp, path)
+    except OSError as err:
+        raise write_failure(path, err) from None
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -366,10 +478,97 @@ def replay_options(args: argparse.Namespace) -> dict[str, Any]:
     return {key: value for key, value in vars(args).items() if key not in BATCH_ONLY}
 
 
+def check_cameras(recordings: Sequence[Recording], camera: Path | None) -> None:
+    """Every recording has a camera file: its own (manifest), ``--camera``, or ``camera.yml`` beside its source
+    (replay's default); :class:`InputError` naming the first that has none, before anything runs."""
+    if camera is not None:
+        return
+    for recording in recordings:
+        beside = Path(recording.source).parent / "camera.yml"
+        if recording.camera is None and not beside.is_file():
+            raise InputError(
+                f"{printable(recording.source)}: no camera file: give --camera FILE (or a camera column in "
+                f"--manifest), the calibration of the camera that took it (none at {printable(beside)})"
+            )
+
+
+def _image_folder(source: str) -> Path | None:
+    """The folder whose files are the frames of an image recording (a folder or a glob); None for a video."""
+    if _is_glob(source):
+        return Path(source).parent
+    return Path(source) if Path(source).is_dir() else None
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return path == folder or folder in path.parents
+
+
+def _run_command(folder: Path) -> str:
+    """The command whose run ``folder`` holds (its ``summary.json``'s ``command``; ``?`` when it says none)."""
+    try:
+        command = json.loads((folder / "summary.json").read_text(encoding="utf-8")).get("command")
+    except (OSError, ValueError, AttributeError):
+        return "?"
+    return command if isinstance(command, str) else "?"
+
+
+def check_out(out: Path, recordings: Sequence[Recording]) -> None:
+    """What a batch into ``out`` would write, checked before anything is: no recording's folder is its image
+    folder or inside it (its outputs would become its frames), and no file of ``out`` that a batch or a run
+    did not write is replaced (``runs.parquet``, a recording folder's ``poses.csv``, ...), nor a run of another
+    command (a ``live --record`` session's ``raw.mkv``). :class:`InputError` naming ``--out`` and the file."""
+    from ..run.paths import _previous_run_here
+
+    where = out.resolve()
+    for recording in recordings:
+        folder = _image_folder(recording.source)
+        if folder is None or not _inside(where / recording.name, folder.resolve()):
+            continue
+        name, shown = printable(recording.name), printable(folder)
+        if _inside(where, folder.resolve()):
+            what = f"{'is' if where == folder.resolve() else 'is inside'} the image folder {shown} of recording {name}"
+        else:
+            what = f"recording {name} would be written into {printable(out / recording.name)}, its own image folder"
+        raise InputError(f"--out {printable(out)}: {what}: its outputs would be taken for frames; give an --out "
+                         "outside it")  # fmt: skip
+    table = runs_path(out)
+    if (table.exists() or table.is_symlink()) and not _is_runs_table(table):
+        raise InputError(
+            f"--out {printable(out)}: holds {table.name}, which no ar-anchor batch wrote; the batch would replace "
+            "it: give a new or empty folder"
+        )
+    for recording in recordings:
+        folder = out / recording.name
+        if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
+            raise InputError(
+                f"--out {printable(out)}: holds {printable(recording.name)}, which is not a folder a batch made; "
+                f"recording {printable(recording.name)} would be written there: give a new or empty folder"
+            )
+        if not folder.is_dir():
+            continue
+        if _previous_run_here(folder):
+            command = _run_command(folder)
+            if command != "replay" and not (folder / STAMP_FILE).is_file():  # (replay would clear it: a live
+                # session's raw.mkv is the user's only copy; batch.json: a batch wrote it, whatever its summary says)
+                what = "a run" if command == "?" else f"a run of `ar-anchor {printable(command)}`"
+                raise InputError(
+                    f"--out {printable(folder)}: holds {what} (its summary.json) that no batch wrote; recording "
+                    f"{printable(recording.name)} would replace its files: give another --out"
+                )
+            continue
+        names = ("poses.csv", "summary.json", "recording.rrd", "frames.csv", STAMP_FILE)
+        theirs = [name for name in names if (folder / name).exists() or (folder / name).is_symlink()]
+        if theirs:
+            raise InputError(
+                f"--out {printable(folder)}: holds {', '.join(theirs)}, which no ar-anchor run wrote (no run's "
+                "summary.json there); the batch would overwrite them: give a new or empty folder"
+            )
+
+
 def cmd_batch(args: argparse.Namespace) -> int:
     """``ar-anchor batch SOURCE... --out DIR``: replay every recording, write the runs table; the exit code."""
     from ..run.outputs import prepare_out_dir
-    from .batch_task import BatchTask, run_local, run_ray
+    from ..run.paths import OutDirLock
 
     if args.video_out is not None:
         raise InputError("--video-out: batch writes one folder per recording; no single annotated video")
@@ -377,14 +576,32 @@ def cmd_batch(args: argparse.Namespace) -> int:
     for option in ("camera", "config"):
         path = getattr(args, option)
         if path is not None and not Path(path).is_file():
-            raise InputError(f"--{option} {printable(path)}: no such file")
-    ray_address = args.ray
-    if ray_address is not None:
+            raise InputError(f"--{option} {printable(path)}: {_not_a_file(Path(path), 'a regular file')}")
+    if args.ray is not None:
         from .batch_task import require_ray
 
         require_ray()
+    check_cameras(recordings, args.camera)
     out = (args.out or default_out("batch")).absolute()  # (absolute paths: what a Ray node is given)
+    check_out(out, recordings)
+    created = not out.exists()
     prepare_out_dir(out)
+    try:
+        with OutDirLock(out):
+            check_out(out, recordings)  # (again, now that no other batch can write into it)
+            return _run_batch(args, out, recordings)
+    except InputError:
+        if created:  # bad input found before anything was written: no empty folder left behind
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
+
+
+def _run_batch(args: argparse.Namespace, out: Path, recordings: list[Recording]) -> int:
+    """The batch, once ``out`` is checked and locked: the replays, then the runs table; the exit code."""
+    from .batch_task import BatchTask, ray_session
+
+    ray_address = args.ray
     options = replay_options(args)
     for option in ("camera", "config"):
         if options.get(option) is not None:
@@ -411,6 +628,18 @@ def cmd_batch(args: argparse.Namespace) -> int:
             continue
         tasks.append(BatchTask(recording, out_dir, task_options, stamp, args.rigid_sheet, args.verbose))
     jobs = args.jobs or usable_cores()
+    with contextlib.ExitStack() as stack:
+        if tasks and ray_address is not None:  # (joined before anything is written: a cluster not there is exit 2)
+            stack.enter_context(ray_session(ray_address, args.jobs))
+        return _replay_all(args, out, recordings, tasks, tally, jobs)
+
+
+def _replay_all(
+    args: argparse.Namespace, out: Path, recordings: list[Recording], tasks: list[Any], tally: _Tally, jobs: int
+) -> int:
+    from .batch_task import run_local, run_ray
+
+    ray_address = args.ray
     started = time.monotonic()
     interrupted = False
     bar = _bar(not args.quiet, len(recordings), tally.skipped)
@@ -420,7 +649,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
             tally.rows[row["name"]] = row
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix_str(f"{row['name']}: {row['status']}")
+                bar.set_postfix_str(f"{printable(row['name'])}: {row['status']}")
             if row["status"] == "failed" and not args.quiet:
                 message = f"ar-anchor: {printable(row['name'])}: failed: {printable(row['error'])}"
                 print(message, file=sys.stderr, flush=True)
@@ -450,7 +679,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         engine = "ray" if ray_address is not None else f"{min(jobs, max(1, len(tasks)))} local process(es)"
         print(
             f"{len(rows)} recording(s): {ok} replayed, {tally.skipped} skipped (already done), {len(failed)} failed"
-            f" in {wall:.1f} s ({engine}); table: {table}"
+            f" in {wall:.1f} s ({engine}); table: {printable(table)}"
         )
     if interrupted:
         stop = KeyboardInterrupt()
@@ -458,7 +687,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         raise stop
     if failed:
         names = ", ".join(printable(row["name"]) for row in failed[:5]) + (", ..." if len(failed) > 5 else "")
-        print(f"ar-anchor: error: {len(failed)} of {len(rows)} recording(s) failed: {names} (see {table})",
+        print(f"ar-anchor: error: {len(failed)} of {len(rows)} recording(s) failed: {names} (see {printable(table)})",
               file=sys.stderr)  # fmt: skip
         return EXIT_FAILURE
     return EXIT_OK

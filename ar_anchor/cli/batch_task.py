@@ -16,6 +16,9 @@ outputs as ``replay`` does; the driver then waits for their rows, and ends what 
 
 Ray engine (:func:`run_ray`): the same task function as a Ray task (``num_cpus=1``, no retries), imported
 only when asked for. Sources and the output folder must be on storage every node sees at the same path.
+Joining a cluster (:func:`ray_session`) is bounded: its address is first probed with a plain TCP connect
+(:data:`RAY_PROBE_TIMEOUT_S`), then ``ray.init`` is given :data:`RAY_CONNECT_TIMEOUT_S`; Ray's own lines
+meanwhile go to the debug log. A cluster that cannot be joined is one line, exit 2.
 """
 
 from __future__ import annotations
@@ -28,9 +31,13 @@ import math
 import multiprocessing
 import os
 import signal
+import socket
+import sys
+import tempfile
+import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
@@ -43,6 +50,8 @@ log = logging.getLogger(__name__)
 
 KEEP_THREADS = "AR_ANCHOR_BATCH_KEEP_OPENCV_THREADS"  # "1": workers keep OpenCV's threads (bench batch measures it)
 GRACE_S = 30.0  # after Ctrl-C: how long the replays get to close their outputs
+RAY_PROBE_TIMEOUT_S = 5.0  # --ray ADDRESS: how long a TCP connect to the address may take
+RAY_CONNECT_TIMEOUT_S = 60.0  # --ray ADDRESS: how long ray.init may take to join the cluster once it answers
 _STATES = ("tracked", "ambiguous", "predicted", "interpolated")
 
 
@@ -62,8 +71,11 @@ class BatchTask:
 def _log_to_stderr(name: str, verbose: int) -> None:
     """The ``ar_anchor`` loggers of this process to stderr, each line naming the recording."""
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    from .main import _escaped_message
+
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter(f"ar-anchor: {printable(name)}: %(levelname)s: %(message)s"))
+    handler.addFilter(_escaped_message)  # (a file name's newline or ANSI escape is shown, not obeyed)
     root = logging.getLogger("ar_anchor")
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -298,6 +310,168 @@ def require_ray() -> Any:
     return ray
 
 
+def _ray_endpoint(ray: Any, address: str) -> tuple[str, int] | None:
+    """The (host, port) that joining ``address`` connects to first; None when it cannot be told (Ray's way of
+    finding ``auto``'s cluster moved). :class:`InputError` when ``auto`` finds no cluster at all."""
+    if address == "auto":
+        try:
+            from ray._private.services import canonicalize_bootstrap_address
+
+            address = canonicalize_bootstrap_address("auto") or ""
+        except ConnectionError:
+            raise InputError(
+                "--ray auto: no running Ray cluster found on this machine (RAY_ADDRESS unset, no `ray start` "
+                "cluster): start one with `ray start --head`, or give its address, or --ray alone for a local Ray"
+            ) from None
+        except Exception:  # noqa: BLE001 - Ray's internals changed: joining is still bounded below
+            return None
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    try:
+        return host.strip("[]"), int(port)
+    except ValueError:
+        return None
+
+
+def _probe(address: str, host: str, port: int) -> None:
+    """A plain TCP connect to ``host:port``; :class:`InputError` naming ``--ray`` when it fails."""
+    try:
+        with socket.create_connection((host, port), timeout=RAY_PROBE_TIMEOUT_S):
+            return
+    except ConnectionRefusedError:
+        why = "connection refused: nothing listens there"
+    except TimeoutError:
+        why = f"no answer within {RAY_PROBE_TIMEOUT_S:g} s"
+    except socket.gaierror as err:
+        why = f"unknown host ({err.strerror or err})"
+    except OSError as err:
+        why = err.strerror or str(err)
+    raise InputError(
+        f"--ray {printable(address)}: cannot reach {printable(host)}:{port} ({why}); is a Ray cluster running there "
+        "(`ray start --head`)?"
+    )
+
+
+@contextlib.contextmanager
+def _stderr_to_log() -> Iterator[None]:
+    """What is written to file descriptor 2 (Ray's own C++ and Python lines) while the block runs goes to the
+    debug log instead."""
+    with tempfile.TemporaryFile() as held:
+        try:
+            saved = os.dup(2)
+        except OSError:
+            yield
+            return
+        sys.stderr.flush()
+        try:
+            os.dup2(held.fileno(), 2)
+            try:
+                yield
+            finally:
+                sys.stderr.flush()
+                os.dup2(saved, 2)
+        finally:
+            os.close(saved)
+        held.seek(0)
+        for line in held.read(1 << 16).decode("utf-8", "replace").splitlines():
+            if line.strip():
+                log.debug("ray: %s", line.strip())
+
+
+def _abandon(ray: Any) -> None:
+    """A ``ray.init`` that never returned is left to its thread: Ray's exit handler, which would wait for it,
+    is taken off (the process ends at once)."""
+    import atexit
+
+    for module in ("ray._private.worker", "ray"):
+        with contextlib.suppress(Exception):
+            atexit.unregister(sys.modules[module].shutdown)
+
+
+def _join(ray: Any, address: str) -> threading.Event:
+    """``ray.init(address)`` within :data:`RAY_CONNECT_TIMEOUT_S` (on a thread: Ctrl-C is not held up), Ray's
+    lines to the debug log; :class:`InputError` naming ``--ray`` when it fails or takes longer.
+
+    The thread lives on until the returned event is set (after ``ray.shutdown``): a process Ray starts is
+    bound to the thread that started it (its parent-death signal) and would end with it."""
+    outcome: dict[str, BaseException] = {}
+    joined, release = threading.Event(), threading.Event()
+
+    def init() -> None:
+        try:
+            ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING)
+        except BaseException as err:  # noqa: BLE001 - handed to the main thread
+            outcome["error"] = err
+            return
+        joined.set()
+        release.wait()
+
+    thread = threading.Thread(target=init, name="ray-connect", daemon=True)
+    deadline = time.monotonic() + RAY_CONNECT_TIMEOUT_S
+    try:
+        with _stderr_to_log():
+            thread.start()
+            while thread.is_alive() and not joined.is_set() and time.monotonic() < deadline:
+                thread.join(0.1)
+    except BaseException:
+        _abandon(ray)
+        raise
+    if thread.is_alive() and not joined.is_set():
+        _abandon(ray)
+        raise InputError(
+            f"--ray {printable(address)}: the address answers but no Ray cluster was joined within "
+            f"{RAY_CONNECT_TIMEOUT_S:g} s (is it a Ray head's address, of the same Ray version?)"
+        )
+    if "error" in outcome:
+        err = outcome["error"]
+        first = (str(err).strip().splitlines() or [""])[0]
+        raise InputError(f"--ray {printable(address)}: cannot join the Ray cluster ({type(err).__name__}: "
+                         f"{printable(first)})")  # fmt: skip
+    return release
+
+
+def _start_local(ray: Any, cpus: int | None) -> None:
+    """A local Ray of ``cpus`` CPUs (default: the usable cores), Ray's lines meanwhile to the debug log.
+    ``RAY_ADDRESS`` would make ``ray.init`` join that cluster instead (and refuse ``num_cpus``): it is set aside
+    meanwhile, with a warning."""
+    joined = os.environ.pop("RAY_ADDRESS", None)
+    if joined:
+        log.warning("--ray: RAY_ADDRESS=%s ignored: --ray alone starts a local Ray (--ray auto joins it)", joined)
+    try:
+        with _stderr_to_log():  # (Ray's own lines while it starts: to the debug log)
+            ray.init(num_cpus=cpus or usable_cores(), include_dashboard=False, logging_level=logging.WARNING)
+    finally:
+        if joined is not None:
+            os.environ["RAY_ADDRESS"] = joined
+
+
+@contextlib.contextmanager
+def ray_session(address: str, cpus: int | None) -> Iterator[Any]:
+    """Ray for a batch, shut down when the block ends (unless it was running before): the cluster at
+    ``address`` (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``) joined within bounded time (see the module doc),
+    or a local Ray of ``cpus`` CPUs (``address`` empty). :class:`InputError` (exit 2) when Ray is not installed
+    or the cluster cannot be reached."""
+    ray = require_ray()
+    if ray.is_initialized():  # (a caller's own Ray)
+        yield ray
+        return
+    release = None
+    if address:
+        endpoint = _ray_endpoint(ray, address)
+        if endpoint is not None:
+            _probe(address, *endpoint)
+        release = _join(ray, address)
+    else:
+        _start_local(ray, cpus)
+    try:
+        yield ray
+    finally:
+        try:
+            ray.shutdown()
+        finally:
+            if release is not None:
+                release.set()
+
+
 def _ray_task(task: BatchTask) -> dict[str, Any]:
     """The Ray task: one recording, OpenCV on one thread (each task holds one CPU)."""
     return replay_recording(task, single_thread=True)
@@ -305,16 +479,9 @@ def _ray_task(task: BatchTask) -> dict[str, Any]:
 
 def run_ray(tasks: list[BatchTask], address: str, cpus: int | None, done: Callable[[dict[str, Any]], None]) -> None:
     """Run ``tasks`` as Ray tasks: on the cluster at ``address`` (``auto``, ``ray://host:10001``), or on a
-    local Ray started here (``address`` empty; ``cpus`` CPUs, default all) and shut down at the end."""
-    ray = require_ray()
-    started_here = not ray.is_initialized()
-    if started_here:
-        options: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING}
-        if address:
-            ray.init(address=address, **options)
-        else:
-            ray.init(num_cpus=cpus or usable_cores(), **options)
-    try:
+    local Ray started here (``address`` empty; ``cpus`` CPUs, default all) and shut down at the end (see
+    :func:`ray_session`; a Ray already running in this process is used as it is)."""
+    with ray_session(address, cpus) as ray:
         remote = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
         refs = {remote.remote(task): task for task in tasks}
         try:
@@ -328,9 +495,6 @@ def run_ray(tasks: list[BatchTask], address: str, cpus: int | None, done: Callab
             for task in refs.values():
                 done(_failed(task, "interrupted before it finished", "interrupted"))
             raise
-    finally:
-        if started_here:
-            ray.shutdown()
 
 
 def _ray_collect(

@@ -62,7 +62,7 @@ def test_colliding_names_are_made_unique_and_a_glob_expands(tmp_path):
     [
         ("missing.mp4", "no such file or folder"),
         ("empty_dir", "no video or image files"),
-        ("nothing*.mp4", "matches no video or image"),
+        ("nothing*.mp4", "no file matches this pattern"),
     ],
 )
 def test_sources_that_match_nothing_are_input_errors(tmp_path, argument, message):
@@ -80,6 +80,8 @@ def test_a_manifest_gives_each_recording_its_camera_config_and_name(tmp_path):
     # given a manifest with relative paths and an optional name
     _touch(tmp_path / "v" / "one.mp4")
     _touch(tmp_path / "v" / "two.mp4")
+    _touch(tmp_path / "cam.yml")
+    _touch(tmp_path / "t.toml")
     manifest = tmp_path / "runs.csv"
     manifest.write_text("source,camera,config,name\nv/one.mp4,cam.yml,,first\nv/two.mp4,,t.toml,\n")
     # when
