@@ -23,7 +23,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import FilterConfig, TrackerConfig
 from ..geometry import Pose, marker_corners_in_marker
-from ..sources.base import Frame
+from ..sources.base import Frame, check_frame
 from ..targets import TargetId, TrackState
 from .detection import FAST_MIN_SIDE_PX, Detector, MarkerDetections, mean_side, plan_regions
 from .filtering import (
@@ -320,7 +320,10 @@ class Tracker:
 
     def detect(self, frame: Frame) -> DetectedFrame:
         """The first stage of :meth:`process`: whether the frame repeats the last one or is motion-blurred,
-        and its markers (detection state only: ROI regions, repeats, sharpness; see :meth:`track`)."""
+        and its markers (detection state only: ROI regions, repeats, sharpness; see :meth:`track`).
+        :class:`~ar_anchor.errors.FrameError` (a ValueError) for a frame that is not a valid :class:`Frame`
+        (a non-finite timestamp, an image that is not a non-empty (H, W, 3) uint8 array): nothing changes."""
+        check_frame(frame)
         if self.stills:
             self._reset_detection()
         fingerprint = _every_4th_pixel(frame.image)
