@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import re
 import sys
 from pathlib import Path
@@ -114,13 +115,28 @@ def recording_files(names: list[str]) -> list[Path]:
 
 
 def _check_recording(path: Path) -> None:
+    """InputError unless ``path`` is a readable regular file that starts as a recording does. Opened without
+    blocking and typed before it is read: a named pipe (which would block ``open`` until a writer came, for
+    ever), a socket or a device is refused by what it is."""
+    import stat
+
+    from ..sources.checks import file_kind
+
     try:
-        with path.open("rb") as stream:
-            head = stream.read(4)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
     except FileNotFoundError:
         raise InputError(f"{printable(path)}: no such file") from None
     except OSError as err:
         raise InputError(f"{printable(path)}: cannot read ({err.strerror or err})") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise InputError(f"{printable(path)}: is {file_kind(mode)}, not a rerun recording (.rrd)")
+        head = os.read(fd, 4)
+    except OSError as err:
+        raise InputError(f"{printable(path)}: cannot read ({err.strerror or err})") from None
+    finally:
+        os.close(fd)
     if not head.startswith(_RRD_MAGIC):
         raise InputError(f"{printable(path)}: not a rerun recording (.rrd)")
 
