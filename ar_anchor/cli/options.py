@@ -176,7 +176,9 @@ def add_viewer_options(parser: argparse.ArgumentParser) -> None:
         "--serve",
         action="store_true",
         help="also stream to a web viewer it serves on 127.0.0.1 (no display needed: open the URL it prints "
-        "in a browser); after the run it keeps serving the recording until Ctrl-C",
+        "in a browser); after the run it keeps serving the recording until Ctrl-C. 127.0.0.1 keeps other "
+        "machines out, not other users: any process on this machine can connect, watch the run and write "
+        "entries into its view (rerun's servers have no authentication)",
     )
     parser.add_argument(
         "--serve-port",

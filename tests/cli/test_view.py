@@ -440,3 +440,15 @@ def test_the_web_viewer_shows_the_overlay_in_the_camera_view(tmp_path):
     last = tmp_path / "web_viewer.png"
     assert found.get("ok"), f"the overlay is not drawn in the camera view (last screenshot: {last}): {found}"
     assert code == EXIT_INTERRUPTED
+
+
+@pytest.mark.parametrize(("argv", "option"), [(["view", "--help"], "--web"), (["demo", "--help"], "--serve")])
+def test_the_help_says_what_127_0_0_1_lets_in(argv, option):
+    """ "This machine only" was read as "only me" (issue 34): rerun 0.41's servers take no token and no Unix
+    socket, so the help of --web, --bind and --serve says what any local process can do."""
+    result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, describe(result)
+    text = " ".join(result.stdout.split())
+    assert option in text
+    assert "not other users: any process on this machine can connect" in text
+    assert "write entries into" in text and "no authentication" in text
