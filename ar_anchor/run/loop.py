@@ -14,7 +14,8 @@ Nothing is written before the last pass: an offline replay interrupted earlier l
 
 A run, step by step: check the options that could fail before any output exists (overlay models,
 ``--video-out``), create ``out_dir``; then, with Ctrl-C and SIGTERM held off while a frame's outputs
-are written (:class:`~.interrupts.InterruptGuard`): open the outputs, track every frame (:func:`_track`), stop
+are written (:class:`~.interrupts.InterruptGuard`): open the outputs, track every frame (:func:`_track`), probe
+the other dictionaries when a short run found no marker (:meth:`~.hints.RunHints.end_of_stream`), stop
 reading ahead, close the outputs; last, write ``summary.json``. A second Ctrl-C while the outputs close
 ends the process at once (exit 130): ``summary.json`` written, the outputs still closing named.
 """
@@ -109,6 +110,7 @@ def run_session(
                     _track(feed, tracker, options, progress, hints, _writer(outputs, guard))
                 else:
                     _track_offline(feed, tracker, outputs, guard, options, progress, hints, offline, passes)
+                hints.end_of_stream()  # (a short run's dictionary probe: seconds, so while a signal is an interrupt)
             finally:
                 guard.hold()  # the closing is not interrupted: a signal now waits until the guard exits
                 feed.close()  # the decoding thread first: nothing reads the source any more
@@ -129,7 +131,7 @@ def run_session(
         raise
     finally:
         extras = summary_extras() if summary_extras is not None else {}
-        extras = {**hints.finish(probe=status == "completed"), **extras}
+        extras = {**hints.finish(probe=False), **extras}  # (probed above, inside the guard)
         if offline is not None:
             extras["offline"] = passes
         summary = outputs.write_summary(status, time.perf_counter() - start, extras)
