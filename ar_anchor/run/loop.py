@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from ..camera import opencv_path_problem
-from ..errors import ArAnchorError, InputError
+from ..errors import ArAnchorError, InputError, OutputError, printable
 from ..render.overlay import OverlayRenderer
 from ..render.video import SUPPORTED_EXTENSIONS
 from ..sources.base import Frame, FrameSource, SourceInfo
@@ -44,7 +44,7 @@ from ..track.tracker import DetectedFrame, FrameResult, Tracker
 from .hints import RunHints
 from .interrupts import InterruptGuard
 from .options import RunOptions
-from .outputs import prepare_out_dir
+from .outputs import DiskFullError, is_disk_full, prepare_out_dir
 from .run_outputs import RunOutputs
 from .threads import Prefetcher
 
@@ -283,7 +283,10 @@ def _track_offline(
         def keep(_frame: Frame, result: FrameResult, truth: dict[str, Any] | None, stages: dict[str, float]) -> int:
             if not spool:
                 outputs.wait_open()  # opened while the first frame was tracked; a failure is said now, not at the end
-            spool.append((result, truth, stages))
+            try:
+                spool.append((result, truth, stages))
+            except OSError as err:  # (a full disk: the spool's, not the recording's, which has barely begun)
+                raise outputs.failed(_spool_failure(outputs.out_dir, spool, err)) from None
             return len(spool)
 
         _track(feed, tracker, options, progress, hints, keep)
@@ -309,6 +312,23 @@ def _track_offline(
             )
         passes["done"].append("write")
         del passes["writing"]
+
+
+SPOOL_NAME = "offline spool (temporary)"  # the spool in summary.json's ``incomplete``: it has no name of its own
+
+
+def _spool_failure(out_dir: Path, spool: SpoolStore[Any], err: OSError) -> OutputError:
+    """The error for the offline replay's spool (an unnamed temporary file in ``out_dir``) failing to grow."""
+    what = (
+        f"{printable(out_dir)}/: the offline replay's spool (an unnamed temporary file there, "
+        f"{spool.size_bytes / 1e6:.1f} MB for {len(spool)} frames) cannot grow"
+    )
+    if is_disk_full(err):
+        return DiskFullError(
+            f"{what}: the disk is full ({err.strerror or err}); replay --causal writes as it goes, with no spool",
+            out_dir / SPOOL_NAME,
+        )
+    return OutputError(f"{what} ({err.strerror or err})")
 
 
 def _write_offline(
