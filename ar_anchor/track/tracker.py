@@ -608,7 +608,16 @@ class Tracker:
         groups count agreements (members leave, groups dissolve: a dissolved group's track ends); every
         group event goes on its target's result (or is logged only, when that target has none)."""
         assert self.groups is not None
-        targets = doubt_layouts(targets, self._disagreeing(measured))  # (before members follow the group's state)
+        disagreeing = self._disagreeing(measured)
+        targets = doubt_layouts(targets, disagreeing)  # (before members follow the group's state)
+        for name in sorted(disagreeing):
+            solved = measured[name]
+            assert isinstance(solved, BoardPose)
+            seen = len(solved.markers_used) + len(solved.outlier_ids)
+            events.setdefault(name, []).append(
+                f"{len(solved.markers_used)} of the {seen} members seen agree with its layout (moved or swapped?): "
+                "not tracked"
+            )
         targets = members_from_groups(targets, layouts, camera, as_member)
         tracked = {name for name, target in targets.items() if target.state is TrackState.TRACKED}
         for name, messages in self.groups.settle(measured, tracked if self.config.filter.enabled else None).items():

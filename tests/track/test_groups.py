@@ -373,6 +373,8 @@ def test_a_group_whose_members_swap_places_is_not_tracked_while_its_layout_disag
     assert max(jumps) > 0.05  # (the case: its pose jumps by a member's place)
     for _, target in after:
         assert target.state is not TrackState.TRACKED and LAYOUT_DOUBT in target.doubts
+        messages = [e.message for e in target.events if e.kind == "group"]
+        assert any("members seen agree with its layout (moved or swapped?): not tracked" in m for m in messages)
     dissolved = [
         r.index for r in results if any("dissolved" in e.message for t in r.targets.values() for e in t.events)
     ]
