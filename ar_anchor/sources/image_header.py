@@ -13,6 +13,8 @@ as before (bounded by the file's size only), and the decoder says what is wrong 
 
 from __future__ import annotations
 
+import os
+import stat
 import struct
 from pathlib import Path
 from typing import BinaryIO
@@ -32,10 +34,22 @@ def pixel_limit_text(max_pixels: int) -> str:
 
 
 def image_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) from ``path``'s header, or None (not a format read here, or a header that does not
-    parse). Reads a few hundred bytes (a JPEG: its segment headers until the frame header)."""
+    """(width, height) from ``path``'s header, or None (not a regular file, not a format read here, or a header
+    that does not parse). Reads a few hundred bytes (a JPEG: its segment headers until the frame header)."""
     try:
-        with path.open("rb") as stream:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # (a named pipe would block a plain open)
+    except OSError:
+        return None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            return None
+        stream = os.fdopen(fd, "rb")
+    except OSError:
+        os.close(fd)
+        return None
+    try:
+        with stream:
             head = stream.read(32)
             if head.startswith(b"\x89PNG\r\n\x1a\n"):
                 return _png(head)

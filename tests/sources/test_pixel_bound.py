@@ -86,6 +86,16 @@ def test_a_header_that_does_not_parse_gives_none(tmp_path, content):
     assert image_size(path) is None
 
 
+def test_a_named_pipe_or_a_folder_has_no_header_and_nothing_blocks(tmp_path):
+    import os
+
+    os.mkfifo(tmp_path / "pipe.png")
+    started = time.perf_counter()
+    assert image_size(tmp_path / "pipe.png") is None and image_size(tmp_path) is None
+    assert image_size(tmp_path / "missing.png") is None
+    assert time.perf_counter() - started < 1
+
+
 def test_a_huge_png_header_is_read_in_microseconds_without_decoding(tmp_path):
     huge_png(tmp_path / "huge.png")
     started = time.perf_counter()
