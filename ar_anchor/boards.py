@@ -69,7 +69,35 @@ def validate_layout(markers: Mapping[int, Any], where: str) -> Layout:
     ids = [m for m, _ in out]
     if len(set(ids)) != len(ids):
         raise ConfigError(f"{where}: marker ids repeat")
-    return tuple(sorted(out))
+    layout = tuple(sorted(out))
+    _refuse_coincident(layout, where)
+    return layout
+
+
+_SAME_PLACE = 0.5  # two markers whose centres are closer than this share of the smaller one's side
+
+
+def _refuse_coincident(layout: Layout, where: str) -> None:
+    """ConfigError naming the first two markers at the same place (centres closer than half the smaller
+    one's side: printed markers cannot overlap; a cube's markers on adjacent faces are 0.7 side apart). A
+    board whose layout holds two such markers, seen as it really is, is solved from corners that disagree
+    by a marker's size, so its pose jumps from frame to frame while the solver calls it tracked."""
+    if len(layout) < 2:
+        return
+    points = np.array([corners for _, corners in layout], np.float64)  # (K, 4, 3)
+    centres = points.mean(axis=1)
+    sides = np.linalg.norm(np.roll(points, -1, axis=1) - points, axis=2).mean(axis=1)
+    distance = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    close = distance < _SAME_PLACE * np.minimum(sides[:, None], sides[None])
+    np.fill_diagonal(close, False)
+    pairs = np.argwhere(np.triu(close))
+    if len(pairs):
+        a, b = (int(k) for k in pairs[0])
+        raise ConfigError(
+            f"{where}: markers {layout[a][0]} and {layout[b][0]} are at the same place (centres "
+            f"{distance[a, b] * 1e3:.1f} mm apart, markers {min(sides[a], sides[b]) * 1e3:.1f} mm wide): a board's "
+            "markers cannot overlap"
+        )
 
 
 def layout_from_mapping(data: Any, where: str) -> Layout:

@@ -14,6 +14,7 @@ __all__ = [
     "ArAnchorError",
     "CameraError",
     "ConfigError",
+    "FrameError",
     "InputError",
     "OutputError",
     "SourceError",
@@ -43,6 +44,12 @@ class CameraError(InputError):
 
 class SourceError(InputError):
     """A frame source cannot be opened."""
+
+
+class FrameError(InputError):
+    """A frame handed to the API (:class:`~ar_anchor.sources.base.Frame`, :meth:`Tracker.process
+    <ar_anchor.track.tracker.Tracker.process>`) is malformed: not an (H, W, 3) uint8 image, an empty one, a
+    timestamp that is not a finite number of nanoseconds, or something that is not a ``Frame`` at all."""
 
 
 class OutputError(ArAnchorError):

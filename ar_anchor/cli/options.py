@@ -176,7 +176,9 @@ def add_viewer_options(parser: argparse.ArgumentParser) -> None:
         "--serve",
         action="store_true",
         help="also stream to a web viewer it serves on 127.0.0.1 (no display needed: open the URL it prints "
-        "in a browser); after the run it keeps serving the recording until Ctrl-C",
+        "in a browser); after the run it keeps serving the recording until Ctrl-C. 127.0.0.1 keeps other "
+        "machines out, not other users: any process on this machine can connect, watch the run and write "
+        "entries into its view (rerun's servers have no authentication)",
     )
     parser.add_argument(
         "--serve-port",
@@ -289,11 +291,13 @@ def load_tracker_config(args: argparse.Namespace, *, demo: bool = False):  # noq
 _OVERRIDE_FLAGS = {"dictionary": "--dictionary", "length_m": "--marker-length"}
 
 
-def camera_for_source(camera: Any, resolution: tuple[int, int], option: str) -> Any:
-    """``camera`` scaled to the source's ``resolution`` (width, height; pixels); errors name ``option``."""
-    from ..errors import CameraError
+def camera_for_source(camera: Any, resolution: tuple[int, int], option: str, *, frames_from: Any = None) -> Any:
+    """``camera`` scaled to the source's ``resolution`` (width, height; pixels); errors name ``option``, and
+    ``frames_from`` (the image whose size the frames have, in an image folder) when given."""
+    from ..errors import CameraError, printable
 
     try:
         return camera.scaled_to(*resolution)
     except CameraError as err:
-        raise CameraError(f"{option}: {err}") from None
+        where = f" (the size of {printable(frames_from)})" if frames_from is not None else ""
+        raise CameraError(f"{option}: {err}{where}") from None

@@ -45,6 +45,14 @@ def add_parser(commands: Any) -> None:
         "source", metavar="SOURCE", help="video file, image folder, or a quoted glob such as 'shots/*.png'"
     )
     add_replay_options(replay)
+    replay.add_argument(
+        "--max-megapixels",
+        type=positive_float,
+        default=None,
+        metavar="MP",
+        help="largest image or video frame read, in megapixels (default 50; read from the file's header "
+        "before it is decoded): a larger image is skipped, a larger video refused",
+    )
     add_run_options(replay, "replay")
     add_camera_options(replay)
     add_export_options(replay, "SOURCE decoded again")
@@ -155,9 +163,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from ..track.tracker import Tracker
 
     config = load_tracker_config(args)
-    with open_source(args.source, live=False, fps=args.fps) as source:
+    max_pixels = None if args.max_megapixels is None else max(1, int(args.max_megapixels * 1e6))
+    with open_source(args.source, live=False, fps=args.fps, max_pixels=max_pixels) as source:
         camera_path = _replay_camera(args)
-        camera = camera_for_source(CameraModel.from_yaml(camera_path), source.resolution, f"--camera {camera_path}")
+        camera = camera_for_source(
+            CameraModel.from_yaml(camera_path),
+            source.resolution,
+            f"--camera {camera_path}",
+            frames_from=getattr(source, "resolution_from", None),
+        )
         stills = stills_assumed(args, source.info)
         if stills:  # each image alone: exactly the per-frame pipeline, nothing carried from one to the next
             config = config.with_overrides(filter_enabled=False)
@@ -176,7 +190,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         offline = None
         if not args.causal and config.filter.enabled:  # (--no-filter: nothing to decide with hindsight)
             offline = OfflineReplay(
-                reopen=lambda: open_source(args.source, live=False, fps=args.fps),
+                reopen=lambda: open_source(args.source, live=False, fps=args.fps, max_pixels=max_pixels),
                 progress=lambda name: Progress(not args.quiet, f"replay {'2/3' if name == 'decide' else '3/3'} {name}"),
             )
         progress = Progress(not args.quiet, "replay" if offline is None else "replay 1/3 track")
@@ -208,4 +222,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         code = EXIT_FAILURE
-    return export_after_run(args, out_dir, code, camera, lambda: open_source(args.source, live=False, fps=args.fps))
+    return export_after_run(
+        args, out_dir, code, camera, lambda: open_source(args.source, live=False, fps=args.fps, max_pixels=max_pixels)
+    )

@@ -5,12 +5,19 @@ The viewer is the ``rerun`` program of rerun-sdk, started with a fixed command l
 closed; with ``--web`` it serves the web viewer and the recordings on 127.0.0.1 (two ports: the page over
 HTTP, the recordings over gRPC) until Ctrl-C. Another address only with ``--bind``, and with a warning:
 rerun's servers have no authentication.
+
+127.0.0.1 keeps other machines out, not other users: any process on this machine, of any user (and of any
+container sharing its network), can connect to both ports, read every recording served and log entries
+into them (the gRPC server is a proxy that takes data from any logging SDK). rerun 0.41 offers no token
+and no private (Unix) socket for its viewer servers, so nothing narrower can be asked of it; this is said
+next to the options (:data:`LOCAL_ONLY_RISK`).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import re
 import sys
 from pathlib import Path
@@ -20,6 +27,12 @@ from ..errors import EXIT_INTERRUPTED, EXIT_OK, ArAnchorError, InputError, print
 from .options import add_command
 
 log = logging.getLogger(__name__)
+
+# what 127.0.0.1 means, in the --help of --web, --bind and --serve (rerun 0.41's servers take no token)
+LOCAL_ONLY_RISK = (
+    "127.0.0.1 keeps other machines out, not other users: any process on this machine can connect, read the "
+    "recordings served and write entries into them (rerun's servers have no authentication)"
+)
 
 _RRD_MAGIC = b"RRF"  # an .rrd (or .rbl) file starts with RRF and a format digit
 
@@ -64,7 +77,12 @@ def add_parser(commands: Any) -> None:
         metavar="RECORDING",
         help="a .rrd file (e.g. OUT/recording*.rrd: all parts of a long run) or a run's output directory",
     )
-    view.add_argument("--web", action="store_true", help="serve the web viewer for a browser instead of a window")
+    view.add_argument(
+        "--web",
+        action="store_true",
+        help="serve the web viewer for a browser instead of a window, on --bind (default 127.0.0.1). "
+        + LOCAL_ONLY_RISK,
+    )
     view.add_argument(
         "--port",
         type=port_number,
@@ -82,8 +100,9 @@ def add_parser(commands: Any) -> None:
         type=bind_address,
         default="127.0.0.1",
         metavar="ADDRESS",
-        help="address the viewer listens on (default 127.0.0.1: this machine only). Any other address "
-        "shows the recordings, unauthenticated, to whoever reaches it on the network",
+        help="address the viewer listens on (default 127.0.0.1: this machine's processes only, every user's: "
+        "any of them can read the recordings and write entries into them). Any other address shows the "
+        "recordings, unauthenticated, to whoever reaches it on the network",
     )
     view.set_defaults(func=cmd_view)
 
@@ -114,13 +133,28 @@ def recording_files(names: list[str]) -> list[Path]:
 
 
 def _check_recording(path: Path) -> None:
+    """InputError unless ``path`` is a readable regular file that starts as a recording does. Opened without
+    blocking and typed before it is read: a named pipe (which would block ``open`` until a writer came, for
+    ever), a socket or a device is refused by what it is."""
+    import stat
+
+    from ..sources.checks import file_kind
+
     try:
-        with path.open("rb") as stream:
-            head = stream.read(4)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
     except FileNotFoundError:
         raise InputError(f"{printable(path)}: no such file") from None
     except OSError as err:
         raise InputError(f"{printable(path)}: cannot read ({err.strerror or err})") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise InputError(f"{printable(path)}: is {file_kind(mode)}, not a rerun recording (.rrd)")
+        head = os.read(fd, 4)
+    except OSError as err:
+        raise InputError(f"{printable(path)}: cannot read ({err.strerror or err})") from None
+    finally:
+        os.close(fd)
     if not head.startswith(_RRD_MAGIC):
         raise InputError(f"{printable(path)}: not a rerun recording (.rrd)")
 

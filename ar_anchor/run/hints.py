@@ -6,7 +6,10 @@ Two mistakes make a run succeed silently with nothing useful in it:
   one second of the stream, or the whole run when it is shorter). Then, once, a few of those frames
   are probed for the other predefined dictionaries (:func:`~ar_anchor.track.dictionary_probe.probe_dictionaries`)
   and one warning names the one found and the flag to use. A run that finds a marker in its first
-  frames stops looking at once: it keeps no frame and probes nothing.
+  frames stops looking at once: it keeps no frame and probes nothing. The probe takes at most
+  :data:`PROBE_BUDGET_S` (plus one detection), and always runs while the run's interrupt guard is on (a
+  run shorter than the window probes at its end, before its outputs close: :meth:`RunHints.end_of_stream`),
+  so a Ctrl-C or SIGTERM meanwhile ends the run as interrupted, ``summary.json`` saying so.
 - **a marker length in millimetres**: poses hundreds of metres away. The first pose beyond
   :data:`FAR_M` is named once, with the marker length it was solved with.
 
@@ -28,12 +31,13 @@ from ..sources.base import Frame
 from ..track.dictionary_probe import DictionaryGuess, probe_dictionaries
 from ..track.tracker import FrameResult
 
-__all__ = ["FAR_M", "WINDOW_FRAMES", "WINDOW_S", "RunHints", "dictionary_hint_text"]
+__all__ = ["FAR_M", "PROBE_BUDGET_S", "WINDOW_FRAMES", "WINDOW_S", "RunHints", "dictionary_hint_text"]
 
 log = logging.getLogger(__name__)
 
 WINDOW_FRAMES = 30  # the first frames in which no marker of the configured dictionary means a hint ...
 WINDOW_S = 1.0  # ... or the first second of the stream, whichever ends first
+PROBE_BUDGET_S = 5.0  # the dictionary probe starts no detection after this (a 1080p frame of squares: 6 s each)
 FAR_M = 100.0  # a pose farther than this from the camera is named once: a length in millimetres?
 _SHOWN_IDS = 8
 
@@ -66,11 +70,19 @@ class RunHints:
         if not self._far_named and result.targets:
             self._name_far_pose(result)
 
-    def finish(self, *, probe: bool = True) -> dict[str, Any]:
-        """The run ended: probe now if it was shorter than the window (``probe``: it completed; an
-        interrupted or failed run ends at once); what goes into ``summary.json``."""
-        if probe and self._watching and self._frames:
+    def end_of_stream(self) -> None:
+        """The stream ended by itself: probe now if it was shorter than the window. Seconds at most
+        (:data:`PROBE_BUDGET_S`): call it while the run's interrupt guard is on, not after (a signal
+        meanwhile is the run's interrupt, and ``summary.json`` says so)."""
+        if self._watching and self._frames:
             self._probe()
+
+    def finish(self, *, probe: bool = True) -> dict[str, Any]:
+        """The run ended: probe now if it was shorter than the window and not probed yet (``probe``: it
+        completed; an interrupted or failed run ends at once; a run calls :meth:`end_of_stream` first, inside
+        its guard); what goes into ``summary.json``."""
+        if probe:
+            self.end_of_stream()
         self._kept.clear()
         return {} if self.dictionary_hint is None else {"dictionary_hint": self.dictionary_hint}
 
@@ -95,8 +107,9 @@ class RunHints:
         images = [self._kept[name] for name in ("latest", "middle", "first") if name in self._kept]
         self._kept.clear()
         configured = self._config.detector.dictionary
+        log.info("no %s marker in the first %d frames: probing the other dictionaries", configured, self._frames)
         try:
-            guess = probe_dictionaries(images, self._config.detector)
+            guess = probe_dictionaries(images, self._config.detector, budget_s=PROBE_BUDGET_S)
         except cv2.error as err:  # a hint that cannot be had is no reason to fail the run
             log.debug("dictionary probe failed: %s", err)
             return

@@ -14,7 +14,8 @@ Nothing is written before the last pass: an offline replay interrupted earlier l
 
 A run, step by step: check the options that could fail before any output exists (overlay models,
 ``--video-out``), create ``out_dir``; then, with Ctrl-C and SIGTERM held off while a frame's outputs
-are written (:class:`~.interrupts.InterruptGuard`): open the outputs, track every frame (:func:`_track`), stop
+are written (:class:`~.interrupts.InterruptGuard`): open the outputs, track every frame (:func:`_track`), probe
+the other dictionaries when a short run found no marker (:meth:`~.hints.RunHints.end_of_stream`), stop
 reading ahead, close the outputs; last, write ``summary.json``. A second Ctrl-C while the outputs close
 ends the process at once (exit 130): ``summary.json`` written, the outputs still closing named.
 """
@@ -32,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from ..camera import opencv_path_problem
-from ..errors import ArAnchorError, InputError
+from ..errors import ArAnchorError, InputError, OutputError, printable
 from ..render.overlay import OverlayRenderer
 from ..render.video import SUPPORTED_EXTENSIONS
 from ..sources.base import Frame, FrameSource, SourceInfo
@@ -43,7 +44,7 @@ from ..track.tracker import DetectedFrame, FrameResult, Tracker
 from .hints import RunHints
 from .interrupts import InterruptGuard
 from .options import RunOptions
-from .outputs import prepare_out_dir
+from .outputs import DiskFullError, is_disk_full, prepare_out_dir
 from .run_outputs import RunOutputs
 from .threads import Prefetcher
 
@@ -109,6 +110,7 @@ def run_session(
                     _track(feed, tracker, options, progress, hints, _writer(outputs, guard))
                 else:
                     _track_offline(feed, tracker, outputs, guard, options, progress, hints, offline, passes)
+                hints.end_of_stream()  # (a short run's dictionary probe: seconds, so while a signal is an interrupt)
             finally:
                 guard.hold()  # the closing is not interrupted: a signal now waits until the guard exits
                 feed.close()  # the decoding thread first: nothing reads the source any more
@@ -129,7 +131,7 @@ def run_session(
         raise
     finally:
         extras = summary_extras() if summary_extras is not None else {}
-        extras = {**hints.finish(probe=status == "completed"), **extras}
+        extras = {**hints.finish(probe=False), **extras}  # (probed above, inside the guard)
         if offline is not None:
             extras["offline"] = passes
         summary = outputs.write_summary(status, time.perf_counter() - start, extras)
@@ -281,7 +283,10 @@ def _track_offline(
         def keep(_frame: Frame, result: FrameResult, truth: dict[str, Any] | None, stages: dict[str, float]) -> int:
             if not spool:
                 outputs.wait_open()  # opened while the first frame was tracked; a failure is said now, not at the end
-            spool.append((result, truth, stages))
+            try:
+                spool.append((result, truth, stages))
+            except OSError as err:  # (a full disk: the spool's, not the recording's, which has barely begun)
+                raise outputs.failed(_spool_failure(outputs.out_dir, spool, err)) from None
             return len(spool)
 
         _track(feed, tracker, options, progress, hints, keep)
@@ -307,6 +312,23 @@ def _track_offline(
             )
         passes["done"].append("write")
         del passes["writing"]
+
+
+SPOOL_NAME = "offline spool (temporary)"  # the spool in summary.json's ``incomplete``: it has no name of its own
+
+
+def _spool_failure(out_dir: Path, spool: SpoolStore[Any], err: OSError) -> OutputError:
+    """The error for the offline replay's spool (an unnamed temporary file in ``out_dir``) failing to grow."""
+    what = (
+        f"{printable(out_dir)}/: the offline replay's spool (an unnamed temporary file there, "
+        f"{spool.size_bytes / 1e6:.1f} MB for {len(spool)} frames) cannot grow"
+    )
+    if is_disk_full(err):
+        return DiskFullError(
+            f"{what}: the disk is full ({err.strerror or err}); replay --causal writes as it goes, with no spool",
+            out_dir / SPOOL_NAME,
+        )
+    return OutputError(f"{what} ({err.strerror or err})")
 
 
 def _write_offline(

@@ -205,6 +205,11 @@ class RunOutputs:
         except OutputError as err:
             raise self._first(err) from None
 
+    def failed(self, err: OutputError, path: Path | None = None) -> OutputError:
+        """What to raise for ``err``, a failure to write beside the outputs (the offline replay's spool): the
+        first full-disk failure of the run, so that it is the one named (see :meth:`_first`)."""
+        return self._first(err, path)
+
     def _first(self, err: OutputError, path: Path | None = None) -> OutputError:
         """What to raise for ``err``: the first full-disk failure of the run once there was one (recorded now
         if ``err`` is it; ``path``: the file it is about, when ``err`` does not say), else ``err``."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,10 +13,13 @@ from typing import Protocol, TypeVar, runtime_checkable
 import numpy as np
 
 from ..camera import CameraModel
-from ..errors import SourceError
+from ..errors import FrameError, SourceError
 from ..geometry import Pose
 
-__all__ = ["ClosingSource", "Frame", "FrameSource", "SourceError", "SourceInfo"]
+__all__ = ["ClosingSource", "Frame", "FrameError", "FrameSource", "SourceError", "SourceInfo", "check_frame"]
+
+# a timestamp beyond +-2^63 ns (292 years) fits no int64 (numpy, the recording's time columns)
+_MAX_TIMESTAMP_NS = 2**63 - 1
 
 
 @dataclass(frozen=True)
@@ -40,12 +45,11 @@ class Frame:
     arrived_ns: int | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
-        image = self.image
-        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-            raise ValueError(
-                f"Frame.image: expected (H, W, 3) uint8 BGR, got "
-                f"{getattr(image, 'shape', None)} {getattr(image, 'dtype', type(image).__name__)}"
-            )
+        """Refuses (:class:`~ar_anchor.errors.FrameError`, a ValueError) an image that is not a non-empty
+        (H, W, 3) uint8 array, an index that is not an integer >= 0, and a timestamp that is not a finite
+        number of nanoseconds within int64 (a NaN or inf timestamp would make every later pose non-finite).
+        A few hundred nanoseconds: it runs for every frame."""
+        check_frame(self)
 
     @property
     def timestamp_s(self) -> float:
@@ -55,6 +59,34 @@ class Frame:
     def size(self) -> tuple[int, int]:
         """(width, height)."""
         return self.image.shape[1], self.image.shape[0]
+
+
+def check_frame(frame: object) -> None:
+    """:class:`~ar_anchor.errors.FrameError` unless ``frame`` is a :class:`Frame` whose image, index and
+    timestamp are valid (see :meth:`Frame.__post_init__`; :meth:`Tracker.detect
+    <ar_anchor.track.tracker.Tracker.detect>` checks again what it is given, whatever happened to it since)."""
+    if not isinstance(frame, Frame):
+        raise FrameError(f"expected an ar_anchor Frame, got {type(frame).__name__}")
+    image = frame.image
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise FrameError(
+            f"Frame.image: expected a non-empty (H, W, 3) uint8 BGR array, got "
+            f"{getattr(image, 'shape', None)} {getattr(image, 'dtype', type(image).__name__)}"
+        )
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise FrameError(f"Frame.image: empty ({image.shape[1]}x{image.shape[0]} pixels)")
+    index = frame.index
+    if type(index) is not int and (isinstance(index, bool) or not isinstance(index, numbers.Integral)):
+        raise FrameError(f"Frame.index: expected an integer >= 0, got {index!r}")
+    if index < 0:
+        raise FrameError(f"Frame.index: expected an integer >= 0, got {index!r}")
+    stamp = frame.timestamp_ns
+    if type(stamp) is not int and (
+        isinstance(stamp, bool) or not isinstance(stamp, numbers.Real) or not math.isfinite(stamp)
+    ):
+        raise FrameError(f"Frame.timestamp_ns: expected a finite number of nanoseconds, got {stamp!r}")
+    if not -_MAX_TIMESTAMP_NS <= stamp <= _MAX_TIMESTAMP_NS:
+        raise FrameError(f"Frame.timestamp_ns: {stamp!r} ns is beyond int64 (+-292 years)")
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from ..synthetic import SyntheticScene, Trajectory, demo_scene
 from .base import FrameSource
 from .checks import file_kind, in_range
 from .files import IMAGE_EXTENSIONS, ImageFolderSource, VideoFileSource
+from .image_header import MAX_IMAGE_PIXELS
 from .live import Grabber, LiveSource, SyntheticGrabber, WebcamGrabber
 
 __all__ = [
@@ -127,7 +128,7 @@ def open_source(
 
 @overload
 def open_source(
-    spec: str | os.PathLike[str], *, live: Literal[False], fps: float | None = None
+    spec: str | os.PathLike[str], *, live: Literal[False], fps: float | None = None, max_pixels: int | None = None
 ) -> VideoFileSource | ImageFolderSource: ...
 
 
@@ -139,6 +140,7 @@ def open_source(
     fps: float | None = None,
     device: DeviceSettings | None = None,
     scene: SyntheticScene | None = None,
+    max_pixels: int | None = None,
 ) -> FrameSource: ...
 
 
@@ -149,12 +151,15 @@ def open_source(
     fps: float | None = None,
     device: DeviceSettings | None = None,
     scene: SyntheticScene | None = None,
+    max_pixels: int | None = None,
 ) -> FrameSource:
     """The source ``spec`` names (see the module doc), opened; use it as a context manager.
 
     ``fps``: an image sequence's frame rate (default 30), the rate asked of a device (default: its own),
     or the default synthetic scene's (default 30). ``device``: what else to ask of a device.
-    ``scene``: what the synthetic camera shows (default :func:`live_demo_scene`).
+    ``scene``: what the synthetic camera shows (default :func:`live_demo_scene`). ``max_pixels``: a file's
+    frames of more pixels are refused (an image skipped, a video not opened; default
+    :data:`~.image_header.MAX_IMAGE_PIXELS`, 50 MP), read from its header before it is decoded.
     Raises :class:`~ar_anchor.errors.SourceError` naming the spec when it cannot be opened (a named pipe, a
     socket or a device node where a file is due is said to be one), and an
     :class:`~ar_anchor.errors.InputError` naming the option for a frame rate or device setting out of range.
@@ -162,7 +167,8 @@ def open_source(
     if live is None:
         live = spec == SYNTHETIC or is_device(spec)
     if not live:
-        return _open_path(os.fspath(spec), fps=_DEFAULT_FPS if fps is None else fps)
+        limit = MAX_IMAGE_PIXELS if max_pixels is None else max_pixels
+        return _open_path(os.fspath(spec), fps=_DEFAULT_FPS if fps is None else fps, max_pixels=limit)
     if fps is not None:
         fps = in_range("--fps", fps, *LIVE_FPS_RANGE, unit=" fps")
     settings = device or DeviceSettings()
@@ -184,7 +190,7 @@ def open_source(
     )
 
 
-def _open_path(text: str, *, fps: float) -> VideoFileSource | ImageFolderSource:
+def _open_path(text: str, *, fps: float, max_pixels: int) -> VideoFileSource | ImageFolderSource:
     """A video file, an image folder, a glob of images, or a single image: the right source for it."""
     path = Path(text)
     try:
@@ -194,7 +200,7 @@ def _open_path(text: str, *, fps: float) -> VideoFileSource | ImageFolderSource:
     if mode is not None and not (stat.S_ISDIR(mode) or stat.S_ISREG(mode)):
         raise SourceError(f"{printable(text)}: is {file_kind(mode)}, not a video, an image or a folder")
     if path.is_dir() or _GLOB_CHARS.search(text) and not path.exists():
-        return ImageFolderSource(text, fps=fps)
+        return ImageFolderSource(text, fps=fps, max_pixels=max_pixels)
     if path.is_file() and path.suffix.lower() in IMAGE_EXTENSIONS:
-        return ImageFolderSource(text, fps=fps)
-    return VideoFileSource(path)
+        return ImageFolderSource(text, fps=fps, max_pixels=max_pixels)
+    return VideoFileSource(path, max_pixels=max_pixels)

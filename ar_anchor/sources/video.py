@@ -30,6 +30,7 @@ from ..errors import SourceError, printable
 from ..lazy import import_held
 from .base import ClosingSource, Frame, SourceInfo
 from .checks import source_file_stat
+from .image_header import MAX_IMAGE_PIXELS, pixel_limit_text
 
 if TYPE_CHECKING:  # PyAV (0.05-0.1 s) is imported when a video is opened: a demo or image folder needs none
     import av
@@ -96,8 +97,15 @@ class VideoFileSource(ClosingSource):
 
     camera: CameraModel | None = None
 
-    def __init__(self, path: str | os.PathLike[str], *, timestamps: str | os.PathLike[str] | None = None) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        timestamps: str | os.PathLike[str] | None = None,
+        max_pixels: int = MAX_IMAGE_PIXELS,
+    ) -> None:
         self.path = Path(path)
+        self._max_pixels = int(max_pixels)
         self._name = printable(self.path)
         source_file_stat(self.path, what="a video")
         problem = opencv_path_problem(self.path)
@@ -135,6 +143,12 @@ class VideoFileSource(ClosingSource):
         from av.video.reformatter import VideoReformatter
 
         stream = self._container.streams.video[0]
+        width, height = stream.codec_context.width or 0, stream.codec_context.height or 0  # (the header's)
+        if width * height > self._max_pixels:
+            raise SourceError(
+                f"{self._name}: frames of {width}x{height} pixels ({width * height / 1e6:.3g} MP), more than the "
+                f"{pixel_limit_text(self._max_pixels)} MP limit (--max-megapixels)"
+            )
         stream.thread_type = "AUTO"  # frame and slice threads, as OpenCV decodes
         self._stream = stream
         self._time_base = stream.time_base.numerator / stream.time_base.denominator if stream.time_base else 0.0

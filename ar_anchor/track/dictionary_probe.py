@@ -14,6 +14,8 @@ markers of another family seldom decode by chance.
 from __future__ import annotations
 
 import functools
+import logging
+import time
 from dataclasses import dataclass
 
 import cv2
@@ -22,6 +24,8 @@ import numpy as np
 from ..config import DetectorConfig, dictionary_id, dictionary_names
 
 __all__ = ["DictionaryGuess", "dictionary_families", "probe_dictionaries"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -64,7 +68,9 @@ def _strict_parameters(config: DetectorConfig) -> cv2.aruco.DetectorParameters:
     return params
 
 
-def probe_dictionaries(images: list[np.ndarray], config: DetectorConfig) -> DictionaryGuess | None:
+def probe_dictionaries(
+    images: list[np.ndarray], config: DetectorConfig, *, budget_s: float | None = None
+) -> DictionaryGuess | None:
     """The dictionary whose markers ``images`` (BGR or grey) hold, other than ``config.dictionary``;
     None when no family finds a marker, or when the best answer is the configured dictionary itself.
 
@@ -72,7 +78,10 @@ def probe_dictionaries(images: list[np.ndarray], config: DetectorConfig) -> Dict
     in it, the family that finds the most markers wins (ties: the first in name order), and its
     smallest member that holds every id found is named. Costs one detection per family (ten) and image
     probed: about 0.1-0.5 s per image of a textured 640x480 scene, most of it in the 1000-marker
-    dictionaries, which match every candidate square against all their codes.
+    dictionaries, which match every candidate square against all their codes; a 1080p image full of
+    square candidates that decode to nothing, 6 s. ``budget_s``: no detection starts once that much time
+    has gone (the answer is then the best found so far; said at INFO), so the probe ends within about
+    ``budget_s`` plus one detection.
     """
     params = _strict_parameters(config)
     detectors = [
@@ -80,15 +89,31 @@ def probe_dictionaries(images: list[np.ndarray], config: DetectorConfig) -> Dict
         for family in dictionary_families()
     ]
     best: tuple[int, tuple[str, ...], list[int]] | None = None
-    for image in images:
+    deadline = None if budget_s is None else time.monotonic() + budget_s
+    for number, image in enumerate(images):
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        for family, detector in detectors:
+        for done, (family, detector) in enumerate(detectors):
+            if deadline is not None and time.monotonic() > deadline:
+                log.info(
+                    "dictionary probe stopped after %g s (image %d of %d, %d of %d families looked at)",
+                    budget_s,
+                    number + 1,
+                    len(images),
+                    done,
+                    len(detectors),
+                )
+                return _named(best, config)
             _corners, ids, _rejected = detector.detectMarkers(grey)
             found = [] if ids is None else [int(i) for i in np.asarray(ids).reshape(-1)]
             if found and (best is None or len(found) > best[0]):
                 best = (len(found), family, found)
         if best is not None:
             break
+    return _named(best, config)
+
+
+def _named(best: tuple[int, tuple[str, ...], list[int]] | None, config: DetectorConfig) -> DictionaryGuess | None:
+    """The guess for the family that found the most markers (its smallest member holding every id found)."""
     if best is None:
         return None
     count, family, found = best

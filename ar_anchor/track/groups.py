@@ -58,6 +58,7 @@ group's and the members' results, so they reach the log and rerun's ``events``.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -75,7 +76,16 @@ from ..targets import TargetId, TrackState
 from .filtering import decided_alone
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms
 
-__all__ = ["GROUP_PREFIX", "GroupLayout", "GroupLearner", "LearnedGroup", "members_from_groups"]
+__all__ = [
+    "GROUP_PREFIX",
+    "LAYOUT_DOUBT",
+    "GroupLayout",
+    "GroupLearner",
+    "LearnedGroup",
+    "disagrees_with_layout",
+    "doubt_layouts",
+    "members_from_groups",
+]
 
 log = logging.getLogger(__name__)
 
@@ -818,6 +828,33 @@ def members_from_groups(
                 continue  # the group's pose does not fit this member's corners as its own does: a layout error
             sure = group.state is TrackState.TRACKED or (own.state is TrackState.TRACKED and _on_own_branch(pose, own))
             out[member] = replace(own, pose, reproj, TrackState.TRACKED if sure else TrackState.AMBIGUOUS)
+    return out
+
+
+LAYOUT_DOUBT = "layout_disagrees"  # a learned group's joint pose agrees with fewer than two of the members seen
+
+
+def disagrees_with_layout(solved: BoardPose) -> bool:
+    """Did a group's joint solve see two members or more but find fewer than two that agree with its layout
+    (``markers_used`` and ``outlier_ids``: seen, rejected)? Then this frame contradicts the layout, and its
+    pose rests on one member's place in it, whichever RANSAC happened to pick."""
+    used = len(solved.markers_used)
+    return used < 2 <= used + len(solved.outlier_ids)
+
+
+def doubt_layouts(targets: dict, names: set[TargetId] | frozenset[TargetId]) -> dict:
+    """``targets`` (a frame's results by name) with each measured one of ``names`` (groups whose frame
+    :func:`disagrees_with_layout`) not ``tracked``: ``ambiguous``, with the doubt :data:`LAYOUT_DOUBT` (which
+    the offline replay keeps: see :mod:`.offline`). Poses are left as they are."""
+    if not names:
+        return targets
+    out = dict(targets)
+    for name in names:
+        target = out.get(name)
+        if target is None or not target.state.measured:
+            continue
+        doubts = target.doubts if LAYOUT_DOUBT in target.doubts else (*target.doubts, LAYOUT_DOUBT)
+        out[name] = dataclasses.replace(target, state=TrackState.AMBIGUOUS, doubts=doubts)
     return out
 
 

@@ -47,7 +47,7 @@ from .filtering import TargetTrack, TrackUpdate, decided_alone, so3_exp, so3_log
 from .filtering.track import EVIDENCE_DOUBTS, SEGMENT_STARTS
 from .fit import refit
 from .gaps import Bridge
-from .groups import members_from_groups
+from .groups import LAYOUT_DOUBT, doubt_layouts, members_from_groups
 from .spool import FrameStore, SpoolStore
 from .tracker import FrameResult, TargetResult, as_member, update_tracks
 
@@ -280,12 +280,15 @@ def offline_results(frames: FrameStore[FrameResult], plan: OfflinePlan) -> Itera
             targets[name] = target
         ordered = {name: targets[name] for name in TargetId.ordered(targets)}
         if causal.groups:  # learned rigid groups: members of a tracked group take its pose
+            ordered = doubt_layouts(ordered, {n for n, t in causal.targets.items() if LAYOUT_DOUBT in t.doubts})
             ordered = members_from_groups(ordered, causal.groups, causal.camera, as_member)
         for name in decided.names:  # every output fits its own frame (see track/fit.py)
             assert causal.camera is not None
             fitted = refit(ordered[name], causal.measurements[name], causal.camera, plan.config, plan.fit_margin_px)
             if fitted is not None:
                 ordered[name] = fitted[0]
+        # a learned group whose frame contradicts its layout stays not tracked (see groups.doubt_layouts)
+        ordered = doubt_layouts(ordered, {n for n, t in causal.targets.items() if LAYOUT_DOUBT in t.doubts})
         previous = dataclasses.replace(causal, targets=ordered, causal_targets=causal.targets)
         yield previous
 

@@ -23,7 +23,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import FilterConfig, TrackerConfig
 from ..geometry import Pose, marker_corners_in_marker
-from ..sources.base import Frame
+from ..sources.base import Frame, check_frame
 from ..targets import TargetId, TrackState
 from .detection import FAST_MIN_SIDE_PX, Detector, MarkerDetections, mean_side, plan_regions
 from .filtering import (
@@ -36,7 +36,7 @@ from .filtering import (
     unit_covariances_of,
 )
 from .fit import refit
-from .groups import GroupLayout, GroupLearner, members_from_groups
+from .groups import GROUP_PREFIX, GroupLayout, GroupLearner, disagrees_with_layout, doubt_layouts, members_from_groups
 from .marker_poses import solve_markers
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms
 
@@ -320,7 +320,10 @@ class Tracker:
 
     def detect(self, frame: Frame) -> DetectedFrame:
         """The first stage of :meth:`process`: whether the frame repeats the last one or is motion-blurred,
-        and its markers (detection state only: ROI regions, repeats, sharpness; see :meth:`track`)."""
+        and its markers (detection state only: ROI regions, repeats, sharpness; see :meth:`track`).
+        :class:`~ar_anchor.errors.FrameError` (a ValueError) for a frame that is not a valid :class:`Frame`
+        (a non-finite timestamp, an image that is not a non-empty (H, W, 3) uint8 array): nothing changes."""
+        check_frame(frame)
         if self.stills:
             self._reset_detection()
         fingerprint = _every_4th_pixel(frame.image)
@@ -502,7 +505,20 @@ class Tracker:
         if self.config.filter.enabled:  # (without it every output is the frame's own best solution)
             targets = self._fit_to_frame(targets, measured, frame, camera, blurred)
             targets = self._after_a_cut(targets, frame.index)
+            if self.groups is not None:  # (a refit may have called a disagreeing group tracked again)
+                targets = doubt_layouts(targets, self._disagreeing(measured))
         return targets
+
+    def _disagreeing(self, measured: dict[TargetId, MarkerPose | BoardPose]) -> set[TargetId]:
+        """Learned groups whose joint solve this frame saw two members or more but found fewer than two that
+        agree with the layout (:func:`~.groups.disagrees_with_layout`: swapped or moved members)."""
+        configured = {solver.target for solver in self.board_solvers}
+        return {
+            name
+            for name, solved in measured.items()
+            if isinstance(solved, BoardPose) and name not in configured and name.is_board
+            and name.name.startswith(GROUP_PREFIX) and disagrees_with_layout(solved)
+        }  # fmt: skip
 
     def _at_first_row(self, detections: MarkerDetections, frame: Frame) -> MarkerDetections:
         """``detections`` with every corner taken back to the frame's first-row time, for a rolling shutter
@@ -592,6 +608,16 @@ class Tracker:
         groups count agreements (members leave, groups dissolve: a dissolved group's track ends); every
         group event goes on its target's result (or is logged only, when that target has none)."""
         assert self.groups is not None
+        disagreeing = self._disagreeing(measured)
+        targets = doubt_layouts(targets, disagreeing)  # (before members follow the group's state)
+        for name in sorted(disagreeing):
+            solved = measured[name]
+            assert isinstance(solved, BoardPose)
+            seen = len(solved.markers_used) + len(solved.outlier_ids)
+            events.setdefault(name, []).append(
+                f"{len(solved.markers_used)} of the {seen} members seen agree with its layout (moved or swapped?): "
+                "not tracked"
+            )
         targets = members_from_groups(targets, layouts, camera, as_member)
         tracked = {name for name, target in targets.items() if target.state is TrackState.TRACKED}
         for name, messages in self.groups.settle(measured, tracked if self.config.filter.enabled else None).items():

@@ -125,6 +125,30 @@ def test_a_file_that_is_not_a_recording_is_named(tmp_path, make, message):
         view.recording_files([str(path)])
 
 
+@pytest.mark.parametrize("in_a_run_folder", [False, True], ids=["file", "run-folder"])
+def test_view_of_a_named_pipe_is_refused_at_once_not_opened(tmp_path, in_a_run_folder):
+    """A FIFO as the recording (given, or a run folder's recording.rrd) blocked for ever in open() (issue 34)."""
+    (tmp_path / "run").mkdir()
+    pipe = tmp_path / "run" / "recording.rrd" if in_a_run_folder else tmp_path / "pipe.rrd"
+    os.mkfifo(pipe)
+    target = pipe.parent if in_a_run_folder else pipe
+    started = time.monotonic()
+    result = subprocess.run(cli(["view", "--web", str(target)]), capture_output=True, text=True, timeout=60)
+    assert result.returncode == EXIT_USAGE, describe(result)
+    assert result.stderr.strip().splitlines() == [
+        f"ar-anchor: error: {pipe}: is a named pipe (FIFO), not a rerun recording (.rrd)"
+    ]
+    assert time.monotonic() - started < 30
+
+
+def test_a_device_or_a_folder_named_as_a_part_is_refused_by_what_it_is(tmp_path):
+    with pytest.raises(InputError, match=re.escape("/dev/null: is a character device, not a rerun recording")):
+        view.recording_files(["/dev/null"])
+    (tmp_path / "run" / "recording.rrd").mkdir(parents=True)
+    with pytest.raises(InputError, match=re.escape("recording.rrd: is a folder, not a rerun recording")):
+        view.recording_files([str(tmp_path / "run")])
+
+
 def test_view_of_a_missing_file_is_one_line_and_exit_2(tmp_path):
     result = subprocess.run(
         cli(["view", "--web", str(tmp_path / "nope.rrd")]), capture_output=True, text=True, timeout=120
@@ -416,3 +440,15 @@ def test_the_web_viewer_shows_the_overlay_in_the_camera_view(tmp_path):
     last = tmp_path / "web_viewer.png"
     assert found.get("ok"), f"the overlay is not drawn in the camera view (last screenshot: {last}): {found}"
     assert code == EXIT_INTERRUPTED
+
+
+@pytest.mark.parametrize(("argv", "option"), [(["view", "--help"], "--web"), (["demo", "--help"], "--serve")])
+def test_the_help_says_what_127_0_0_1_lets_in(argv, option):
+    """ "This machine only" was read as "only me" (issue 34): rerun 0.41's servers take no token and no Unix
+    socket, so the help of --web, --bind and --serve says what any local process can do."""
+    result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, describe(result)
+    text = " ".join(result.stdout.split())
+    assert option in text
+    assert "not other users: any process on this machine can connect" in text
+    assert "write entries into" in text and "no authentication" in text

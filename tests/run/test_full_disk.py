@@ -197,3 +197,42 @@ def test_a_full_disk_that_names_no_file_is_still_reported_and_summarised(tmp_pat
         outputs.write_summary("failed", 1.0, {})
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["incomplete"] == ["recording.rrd", "poses.csv"]
+
+
+# ------------------------------------------------------------------------------------ the offline spool (issue 34)
+def test_a_full_disk_under_the_offline_spool_names_the_spool_not_the_recording(tmp_path, monkeypatch):
+    """An offline replay keeps its first pass's frames in an unnamed temporary file in --out: a disk that
+    fills under it was blamed on recording.rrd (which had barely begun)."""
+    import cv2
+
+    from ar_anchor.run.loop import SPOOL_NAME
+    from ar_anchor.track.spool import SpoolStore
+
+    scene = small_scene(frames=6)
+    shots = tmp_path / "shots"
+    shots.mkdir()
+    for frame in SyntheticSource(scene):
+        assert cv2.imwrite(str(shots / f"f_{frame.index}.png"), frame.image)
+    camera = tmp_path / "cam.yml"
+    scene.camera.to_yaml(camera)
+    real_append = SpoolStore.append
+
+    def append(self, item):
+        if len(self) >= 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_append(self, item)
+
+    monkeypatch.setattr(SpoolStore, "append", append)
+    out = tmp_path / "out"
+    result = run_main(["-q", "replay", str(shots), "--sequence", "--camera", str(camera), "--out", str(out)])
+    assert_clean_exit(result)
+    assert result.code == 1, result.describe()
+    (line,) = error_lines(result.stderr)
+    assert line.startswith(
+        f"ar-anchor: error: {out}/: the offline replay's spool (an unnamed temporary file there, "
+    ), line
+    assert "for 3 frames) cannot grow: the disk is full" in line and "replay --causal" in line
+    assert "recording.rrd: incomplete" not in line
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and summary["incomplete"][0] == SPOOL_NAME
+    assert not (out / "summary.json.tmp").exists() and not (out / LOCK_NAME).exists()

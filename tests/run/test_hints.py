@@ -203,3 +203,69 @@ def test_replay_with_millimetres_warns_about_units_and_distance(realdata, tmp_pa
     assert run.code == 0, run.describe()
     assert "--marker-length 34: a marker 34 m wide? did you give millimetres?" in run.stderr
     assert "m from the camera" in run.stderr and "did you give millimetres?" in run.stderr
+
+
+# ---------------------------------------------------------------------------- the probe, bounded and interruptible
+
+
+def squares(width: int = 1920, height: int = 1080, cell: int = 20, seed: int = 0) -> np.ndarray:
+    """A page of black squares, each with a random white or black centre: every one a candidate that decodes
+    to no marker of any dictionary (the probe's worst case: about 6 s per 1080p image, all ten families)."""
+    rng = np.random.default_rng(seed)
+    page = np.full((height, width), 255, np.uint8)
+    for y in range(10, height - cell - 10, cell + 12):
+        for x in range(10, width - cell - 10, cell + 12):
+            page[y : y + cell, x : x + cell] = 0
+            page[y + cell // 4 : y + 3 * cell // 4, x + cell // 4 : x + 3 * cell // 4] = 255 * (rng.random() < 0.5)
+    return cv2.cvtColor(page, cv2.COLOR_GRAY2BGR)
+
+
+def test_the_probe_starts_no_detection_once_its_budget_is_spent(caplog):
+    with caplog.at_level(logging.INFO, logger="ar_anchor"):
+        assert probe_dictionaries([sheet("DICT_5X5_50", [4])], DetectorConfig(), budget_s=0.0) is None
+    assert "dictionary probe stopped after 0 s (image 1 of 1, 0 of" in caplog.text
+    guess = probe_dictionaries([sheet("DICT_5X5_50", [4])], DetectorConfig(), budget_s=hints_module.PROBE_BUDGET_S)
+    assert guess is not None and guess.dictionary == "DICT_5X5_50"
+
+
+@pytest.mark.parametrize("signum", ["SIGTERM", "SIGINT"])
+def test_a_signal_during_a_short_runs_probe_ends_the_run_as_interrupted(tmp_path, signum):
+    """Issue 34: a run shorter than the window probed after its interrupt guard had closed (9-18 s at 1080p):
+    a Ctrl-C or SIGTERM then left summary.json at `running, frames: 0`, the lock and summary.json.tmp."""
+    import json
+    import signal
+    import subprocess
+    import time
+
+    from tests.helpers import cli
+
+    (tmp_path / "shots").mkdir()
+    for index in range(2):
+        cv2.imwrite(str(tmp_path / "shots" / f"f{index}.png"), squares(seed=index))
+    out = tmp_path / "out"
+    camera = "configs/camera_synthetic.yml"
+    argv = ["replay", str(tmp_path / "shots"), "--camera", camera, "--sequence", "--causal", "--out", str(out)]
+    process = subprocess.Popen(cli([*argv, "-q", "-v"]), stderr=subprocess.PIPE, text=True)
+    try:
+        lines = []
+        for line in process.stderr:  # wait for the probe to begin
+            lines.append(line)
+            if "probing the other dictionaries" in line:
+                break
+        else:
+            pytest.fail("no probe: " + "".join(lines))
+        time.sleep(0.3)  # (inside OpenCV's detection: the signal is handled when it returns)
+        signalled = time.monotonic()
+        process.send_signal(getattr(signal, signum))
+        rest = process.stderr.read()
+        code = process.wait(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert code == 130, "".join(lines) + rest
+    assert time.monotonic() - signalled < 10
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "interrupted" and summary["frames"] == 2
+    left = sorted(p.name for p in out.iterdir())
+    assert left == ["frames.csv", "poses.csv", "recording.rrd", "summary.json"], left
+    assert "Traceback" not in rest and "internal error" not in rest

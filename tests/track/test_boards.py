@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ar_anchor.boards import read_layout
+from ar_anchor.boards import layout_from_mapping, read_layout
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import BoardConfig, DetectorConfig, TrackerConfig, load_config
 from ar_anchor.errors import CameraError, ConfigError, InputError
@@ -21,6 +21,7 @@ from ar_anchor.synthetic import PlacedBoard, SyntheticScene, Trajectory
 from ar_anchor.track.detection import Detector, MarkerDetections
 from ar_anchor.track.pose import BoardPose, BoardSolver, reprojection_rms
 from ar_anchor.track.tracker import Tracker
+from tests.helpers import run_main
 
 # ============================================================================ helpers
 
@@ -901,3 +902,49 @@ def test_charuco_photos_solve_from_chessboard_corners(realdata, name, min_marker
     assert isinstance(from_markers, BoardPose) and from_markers.solver == "markers"
     rotation_error, translation_error = pose_errors(from_markers.best.pose, solved.best.pose)
     assert rotation_error < 2.0 and translation_error < 0.005
+
+
+# ============================================================================ coincident markers (issue 34)
+
+
+def _shifted(corners, dx: float = 0.0, dy: float = 0.0):
+    return [[x + dx, y + dy, z] for x, y, z in corners]
+
+
+@pytest.mark.parametrize("form", ["toml", "aruco-yaml"])
+def test_a_layout_with_two_markers_at_the_same_place_is_refused_naming_file_and_markers(tmp_path, form):
+    """Two markers at one place made a board `tracked` whose pose jumped 8 cm a frame: refused at load."""
+    markers = {3: SQUARE, 4: _shifted(SQUARE, 0.1), 9: _shifted(SQUARE, 0.01)}  # 9: 10 mm from 3, both 50 mm
+    if form == "toml":
+        text = "".join(f"[[markers]]\nid = {i}\ncorners = {toml_corners(c)}\n" for i, c in markers.items())
+        name = "layout.toml"
+    else:
+        text, name = aruco_marker_map(markers), "layout.yml"
+    layout = write(tmp_path / name, text)
+    path = write(tmp_path / "c.toml", f"[[boards]]\nname = 'b'\nkind = 'custom'\nlayout = '{name}'\n")
+    assert_one_line_config_error(
+        path,
+        r"\[\[boards\]\] 'b' layout: layout file "
+        + re.escape(str(layout))
+        + r": markers 3 and 9 are at the same place \(centres 10\.0 mm apart, markers 50\.0 mm wide\)",
+    )
+    result = run_main(["-q", "demo", "--config", str(path), "--max-frames", "1", "--out", str(tmp_path / "o")])
+    assert result.code == 2 and result.stderr.count("\n") == 1, result.describe()
+    assert "markers 3 and 9 are at the same place" in result.stderr and str(layout) in result.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_inline_markers_at_the_same_place_are_refused_and_a_cube_is_not():
+    same = {"markers": [{"id": 1, "corners": SQUARE}, {"id": 2, "corners": _shifted(SQUARE, 0.0, 0.0)}]}
+    with pytest.raises(ConfigError, match="inline markers: markers 1 and 2 are at the same place"):
+        layout_from_mapping(same, "inline markers")
+    # a cube's faces: markers on adjacent faces are 0.7 of a side apart, on one edge: accepted
+    s = 0.05
+    cube = {
+        "markers": [
+            {"id": 1, "corners": [[0, 0, 0], [s, 0, 0], [s, s, 0], [0, s, 0]]},
+            {"id": 2, "corners": [[0, 0, 0], [0, s, 0], [0, s, s], [0, 0, s]]},
+            {"id": 3, "corners": [[0, 0, 0], [0, 0, s], [s, 0, s], [s, 0, 0]]},
+        ]
+    }
+    assert len(layout_from_mapping(cube, "cube")) == 3

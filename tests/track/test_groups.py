@@ -8,6 +8,7 @@ hand-held test of the whole tracker is tests/track/test_groups_tracker.py.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -317,3 +318,86 @@ def test_markers_of_a_configured_board_are_never_learned_again():
         camera = _camera(frame)
         _step(learner, _measure({i: camera.compose(p) for i, p in sheet.items()}, rng))
     assert not learner.groups and not learner.pairs  # (marker 7, the only lone one, has no partner)
+
+
+# ---------------------------------------------------------------------------- members that swap places (issue 34)
+
+
+def _swap_run(ids, swap, cols, frames, swap_at):
+    """The whole tracker with learned groups on a sheet of ``ids`` (``cols`` a row) whose markers ``swap``
+    places at frame ``swap_at`` (detections projected from the truth, 0.3 px noise). Its results."""
+    from ar_anchor.sources.base import Frame
+    from ar_anchor.track.detection import MarkerDetections
+    from ar_anchor.track.tracker import DetectedFrame, Tracker
+
+    config = _config()
+    length = config.marker_length(ids[0])
+    sheet = _sheet(ids, cols=cols)
+    tracker = Tracker(config, CAMERA)
+    rng = np.random.default_rng(7)
+    image = np.zeros((480, 640, 3), np.uint8)
+    results = []
+    for frame in range(frames):
+        placed = dict(sheet)
+        if frame >= swap_at:
+            a, b = swap
+            placed[a], placed[b] = sheet[b], sheet[a]
+        camera = _camera(frame)
+        corners = [CAMERA.project(camera.compose(placed[i]).apply(marker_corners_in_marker(length))) for i in ids]
+        corners = np.array(corners) + rng.normal(0.0, 0.3, (len(ids), 4, 2))
+        detections = MarkerDetections(np.array(ids), corners)
+        frame_in = Frame(image, frame, frame * 33_333_333)
+        results.append(tracker.track(DetectedFrame(frame_in, CAMERA, detections, False, math.nan, False, 0.0)))
+    return config, results
+
+
+@pytest.mark.parametrize(
+    ("ids", "swap", "cols"), [((0, 1, 2), (0, 2), 3), ((0, 1), (0, 1), 2)], ids=["row-of-3", "pair"]
+)
+def test_a_group_whose_members_swap_places_is_not_tracked_while_its_layout_disagrees(ids, swap, cols):
+    """Two members swapped: the joint pose rests on one member's place, whichever RANSAC picks, and jumped
+    8-17 cm a frame while `tracked`. Now: not tracked (doubt layout_disagrees) until the group dissolves, its
+    poses as they were; then the markers learn their new layout; the offline replay keeps the doubt."""
+    from ar_anchor.targets import TrackState
+    from ar_anchor.track.groups import LAYOUT_DOUBT
+    from ar_anchor.track.offline import decide, offline_results
+
+    swap_at = 150
+    config, results = _swap_run(ids, swap, cols, swap_at + 70, swap_at)
+    group = TargetId.board("group-1")
+    before = [r.targets[group] for r in results[swap_at - 30 : swap_at] if group in r.targets]
+    assert len(before) == 30 and all(t.state is TrackState.TRACKED for t in before)
+    after = [(r.index, r.targets[group]) for r in results[swap_at:] if group in r.targets and r.targets[group].measured]
+    assert after, "the group was not measured after the swap"
+    jumps = [np.linalg.norm(t.pose.tvec - results[i - 1].targets[group].pose.tvec) for i, t in after[1:]]
+    assert max(jumps) > 0.05  # (the case: its pose jumps by a member's place)
+    for _, target in after:
+        assert target.state is not TrackState.TRACKED and LAYOUT_DOUBT in target.doubts
+        messages = [e.message for e in target.events if e.kind == "group"]
+        assert any("members seen agree with its layout (moved or swapped?): not tracked" in m for m in messages)
+    dissolved = [
+        r.index for r in results if any("dissolved" in e.message for t in r.targets.values() for e in t.events)
+    ]
+    assert dissolved and dissolved[0] - swap_at <= config.groups.leave_frames + 1
+    relearned = [n for n in results[-1].targets if n.is_board and n != group]
+    assert relearned and results[-1].targets[relearned[0]].state is TrackState.TRACKED  # the new layout
+    # the offline replay decides the same frames with hindsight: still not tracked
+    plan = decide(results, config)
+    offline = list(offline_results(results, plan))
+    for index, _ in after:
+        target = offline[index].targets.get(group)
+        assert target is None or target.state is not TrackState.TRACKED, (index, target.state)
+
+
+def test_a_group_that_keeps_a_consensus_when_two_members_swap_stays_tracked_on_it():
+    """Six members, two swapped: four still agree, the group's pose rests on them (tracked, no jump) and the
+    two leave."""
+    from ar_anchor.targets import TrackState
+
+    swap_at = 150
+    _, results = _swap_run((0, 1, 2, 3, 4, 5), (1, 4), 3, swap_at + 20, swap_at)
+    group = TargetId.board("group-1")
+    after = [r.targets[group] for r in results[swap_at:]]
+    assert all(t.state is TrackState.TRACKED and set(t.markers_used) == {0, 2, 3, 5} for t in after)
+    steps = [np.linalg.norm(b.pose.tvec - a.pose.tvec) for a, b in itertools.pairwise(after)]
+    assert max(steps) < 0.01

@@ -11,6 +11,7 @@ from ar_anchor import SyntheticSource, Tracker, demo_scene
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import demo_config
 from ar_anchor.geometry import angle_between_deg
+from ar_anchor.sources.base import Frame
 from ar_anchor.targets import TargetId, TrackState
 
 
@@ -83,3 +84,88 @@ def test_the_fingerprint_is_every_4th_pixel_whatever_the_size(shape):
     fingerprint = _every_4th_pixel(image)
     np.testing.assert_array_equal(fingerprint, image[::4, ::4])
     assert fingerprint.flags.c_contiguous
+
+
+# ---- the API's boundary (issue 34): a malformed frame is refused, typed, before it touches any state
+
+
+@pytest.mark.parametrize("stamp", [float("nan"), float("inf"), -float("inf"), "0", None, True, 2**63, 1j])
+def test_frame_refuses_a_timestamp_that_is_not_a_finite_number_of_nanoseconds(stamp):
+    from ar_anchor.errors import FrameError, InputError
+
+    with pytest.raises(FrameError, match="Frame.timestamp_ns") as caught:
+        Frame(np.zeros((8, 8, 3), np.uint8), 0, stamp)
+    assert isinstance(caught.value, InputError) and isinstance(caught.value, ValueError)
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((8, 8), np.uint8),  # grey
+        np.zeros((8, 8, 4), np.uint8),  # BGRA
+        np.zeros((8, 8, 3), np.float32),
+        np.zeros((8, 8, 3), np.uint16),
+        np.zeros((0, 8, 3), np.uint8),  # empty (was an OpenCV assertion in Tracker.process)
+        np.zeros((8, 0, 3), np.uint8),
+        np.zeros((2, 8, 8, 3), np.uint8),
+        [[[0, 0, 0]]],
+        None,
+    ],
+)
+def test_frame_refuses_a_malformed_image(image):
+    from ar_anchor.errors import FrameError
+
+    with pytest.raises(FrameError, match="Frame.image"):
+        Frame(image, 0, 0)
+
+
+def test_frame_refuses_a_negative_or_non_integer_index():
+    from ar_anchor.errors import FrameError
+
+    for index in (-1, 1.0, "1", None):
+        with pytest.raises(FrameError, match="Frame.index"):
+            Frame(np.zeros((8, 8, 3), np.uint8), index, 0)
+    assert Frame(np.zeros((8, 8, 3), np.uint8), np.int64(3), np.int64(5)).index == 3  # numpy integers are fine
+
+
+def test_process_refuses_a_frame_spoiled_after_it_was_made_and_keeps_its_state():
+    """A NaN timestamp smuggled past Frame (object.__setattr__ on the frozen dataclass), or no Frame at all:
+    Tracker.process (and detect) refuse it, and the tracker goes on exactly as if it had never been given."""
+    from ar_anchor.errors import FrameError
+
+    config, camera, frames = _frames(6)
+    tracker, fresh = Tracker(config, camera), Tracker(config, camera)
+    for frame in frames[:3]:
+        assert _same(tracker.process(frame), fresh.process(frame))
+    spoiled = dataclasses.replace(frames[3])
+    object.__setattr__(spoiled, "timestamp_ns", float("nan"))
+    for bad in (spoiled, frames[3].image, None):
+        with pytest.raises(FrameError):
+            tracker.process(bad)
+        with pytest.raises(FrameError):
+            tracker.detect(bad)
+    for frame in frames[3:]:
+        result = tracker.process(frame)
+        assert _same(result, fresh.process(frame))
+        assert all(np.isfinite(t.pose.tvec).all() and np.isfinite(t.pose.rvec).all() for t in result.targets.values())
+
+
+def test_a_non_contiguous_image_is_tracked_as_its_contiguous_copy():
+    config, camera, frames = _frames(2)
+    padded = np.zeros((frames[0].image.shape[0], frames[0].image.shape[1] * 2, 3), np.uint8)
+    padded[:, ::2] = frames[0].image
+    view = padded[:, ::2]
+    assert not view.flags.c_contiguous
+    a = Tracker(config, camera).process(Frame(view, 0, 0))
+    b = Tracker(config, camera).process(Frame(np.ascontiguousarray(view), 0, 0))
+    assert a.targets and _same(a, b)
+
+
+def test_checking_a_frame_costs_microseconds():
+    import timeit
+
+    from ar_anchor.sources.base import check_frame
+
+    frame = Frame(np.zeros((720, 1280, 3), np.uint8), 1, 33_333_333)
+    per_call = min(timeit.repeat(lambda: check_frame(frame), number=2000, repeat=5)) / 2000
+    assert per_call < 20e-6, f"{per_call * 1e6:.1f} us per frame"
