@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import CameraModel
+from ..errors import ArAnchorError
 from .report import fmt, load_average, machine_info, machine_lines, report_head
 from .speed import render_clip, speed_scene
 from .speed.real_clip import chessboard_files
@@ -210,6 +211,13 @@ def _replay_fifty(tmp: Path, frames: int) -> dict[str, Any]:
     return {**_replay_run(args, tmp / "fifty", shown), "video_mb": video.stat().st_size / 1e6}
 
 
+def _sigint_as_a_user_has_it() -> None:
+    """In the live run's process before it starts: SIGINT back to its default. A bench started in the
+    background (``cmd &`` in a script, ``nohup``) has it ignored, the child would inherit that, and a live run
+    keeps ignoring a signal its parent ignored (as it should: that is how a background job is started)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _live(tmp: Path, seconds: float, name: str, config: str | None = None) -> dict[str, Any]:
     """A live synthetic 1080p run for ``seconds`` after the camera opened, then SIGINT. ``config``: a
     tracker TOML (the synthetic scene holds the markers and boards it names)."""
@@ -223,7 +231,9 @@ def _live(tmp: Path, seconds: float, name: str, config: str | None = None) -> di
         path = tmp / f"{name}.toml"
         path.write_text(config)
         command += ["--config", str(path)]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_as_a_user_has_it
+    )
     samples: list[tuple[float, float]] = []
     started: float | None = None
     try:
@@ -239,10 +249,14 @@ def _live(tmp: Path, seconds: float, name: str, config: str | None = None) -> di
                     process.send_signal(signal.SIGINT)
                     break
             time.sleep(SAMPLE_S if started is not None else 0.5)
-        _, stderr = process.communicate(timeout=120)
+        try:
+            _, stderr = process.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            raise ArAnchorError(f"bench: the live run ({out}) did not end within 120 s of its SIGINT") from None
     finally:
         if process.poll() is None:
             process.kill()
+            process.communicate()
     summary = json.loads((out / "summary.json").read_text())
     return {
         "exit_code": process.returncode,
