@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -8,6 +9,14 @@ import pytest
 from ar_anchor.camera import CameraModel
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A suite started in the background (``pytest &`` in a script) has SIGINT ignored, and every process a
+    test starts would inherit that: the tests that interrupt a run with Ctrl-C would then test nothing but
+    the ignoring. Such a test starts its process as a user's terminal would, with SIGINT at its default."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")
