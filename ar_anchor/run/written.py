@@ -18,9 +18,9 @@ import stat
 from collections.abc import Iterable
 from pathlib import Path
 
-from ..errors import OutputError, printable
+from ..errors import InputError, OutputError, printable
 
-__all__ = ["WrittenFiles"]
+__all__ = ["WrittenFiles", "refuse_theirs"]
 
 
 def _inside_name(name: object) -> bool:
@@ -28,6 +28,19 @@ def _inside_name(name: object) -> bool:
     if not isinstance(name, str) or not name or "\x00" in name or "\\" in name or name.startswith("/"):
         return False
     return all(part not in ("", ".", "..") for part in name.split("/"))
+
+
+def refuse_theirs(out: Path, theirs: list[str], *, not_written_by: str, writer: str, option: str = "--out") -> None:
+    """An :class:`InputError` when ``theirs`` (files ``writer`` would write over, which ``not_written_by`` says
+    who did not write) is not empty: ``--out D: holds a, b, which no ar-anchor export wrote; the export would
+    overwrite them: move them or give another --out``."""
+    if theirs:
+        shown = ", ".join(printable(name) for name in theirs)
+        them = "them" if len(theirs) > 1 else "it"
+        raise InputError(
+            f"{option} {printable(out)}: holds {shown}, which {not_written_by}; {writer} would overwrite {them}: "
+            f"move {them} or give another --out"
+        )
 
 
 class WrittenFiles:

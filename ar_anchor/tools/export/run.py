@@ -36,7 +36,7 @@ from ...camera import CameraModel
 from ...errors import InputError, OutputError, printable
 from ...run.outputs import prepare_out_dir
 from ...run.paths import Named, _previous_run_here, check_paths
-from ...run.written import WrittenFiles
+from ...run.written import WrittenFiles, refuse_theirs
 from ...sources.base import Frame, FrameSource
 from .poses import PoseRow, frames_of, read_poses_csv
 from .tables import FrameNames, PosesExtWriter, TumWriter
@@ -403,13 +403,7 @@ def _same_folder(one: Path, other: Path) -> bool:
 
 def _refuse_theirs(out: Path, option: str, theirs: list[str]) -> None:
     """An :class:`InputError` when ``theirs`` (files an export would write over, which no export wrote) is not empty."""
-    if theirs:
-        shown = ", ".join(printable(name) for name in theirs)
-        them = "them" if len(theirs) > 1 else "it"
-        raise InputError(
-            f"{option} {printable(out)}: holds {shown}, which no ar-anchor export wrote; the export would overwrite "
-            f"{them}: move {them} or give another --out"
-        )
+    refuse_theirs(out, theirs, not_written_by="no ar-anchor export wrote", writer="the export", option=option)
 
 
 def _move_into_place(work: Path, out: Path, formats: tuple[str, ...], option: str = "--out") -> list[Path]:

@@ -17,7 +17,7 @@ from pathlib import Path
 from ...errors import InputError, OutputError, printable
 from ...run.outputs import prepare_out_dir
 from ...run.paths import OutDirLock
-from ...run.written import WrittenFiles
+from ...run.written import WrittenFiles, refuse_theirs
 from .draw import FORMATS, render_pdf, render_png, render_svg
 from .layout import RULER_MM
 from .sheet import MarkerSheet, parse_ids
@@ -71,13 +71,7 @@ def _write_files(out: Path, files: list[tuple[str, bytes]]) -> list[Path]:
     before anything is written."""
     manifest = WrittenFiles(out, "markers")
     theirs = [name for name, blob in files if name in manifest.theirs([name]) and not _same_content(out / name, blob)]
-    if theirs:
-        shown = ", ".join(printable(name) for name in theirs)
-        them = "them" if len(theirs) > 1 else "it"
-        raise InputError(
-            f"--out {printable(out)}: holds {shown}, which ar-anchor markers did not write; the sheet would "
-            f"overwrite {them}: move {them} or give another --out"
-        )
+    refuse_theirs(out, theirs, not_written_by="ar-anchor markers did not write", writer="the sheet")
     written = []
     try:
         for name, blob in files:
