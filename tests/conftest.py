@@ -26,10 +26,13 @@ def camera() -> CameraModel:
 
 @pytest.fixture(scope="session")
 def realdata() -> Path:
-    """../shared/realdata (or $AR_ANCHOR_REALDATA); skips the test when it is absent."""
+    """The folder of real marker recordings named by $AR_ANCHOR_REALDATA; skips the test when it is absent."""
     root = Path(os.environ.get("AR_ANCHOR_REALDATA", REPO.parent / "shared" / "realdata"))
     if not (root / "MANIFEST.md").is_file():
-        pytest.skip(f"real data not found at {root} (set AR_ANCHOR_REALDATA)")
+        pytest.skip(
+            f"real data not found at {root}: set AR_ANCHOR_REALDATA to a folder of the public marker "
+            "recordings (OpenCV contrib's ArUco samples, the ArUco library's test data); see docs/development.md"
+        )
     return root
 
 

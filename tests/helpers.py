@@ -3,7 +3,7 @@ CLI runs, time limits), CLI subprocess checks, and geometry fixtures used by sev
 
 Example budgets: every property test declares its CI budget with :func:`fuzz_settings`; under
 ``HYPOTHESIS_PROFILE=long`` the budget is multiplied by ``FUZZ_SCALE`` (default 20), which is the
-documented longer run (docs/robustness.md).
+documented longer run (docs/fault-campaign.md).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from ar_anchor.synthetic import PlacedMarker, SyntheticScene
 PROFILE = os.environ.get("HYPOTHESIS_PROFILE", "ci")
 SCALE = int(os.environ.get("FUZZ_SCALE", "20")) if PROFILE == "long" else 1
 
-# Exit codes of ar_anchor.cli.main (docs/robustness.md)
+# Exit codes of ar_anchor.cli.main (docs/troubleshooting.md)
 EXIT_CODES = {0, 1, 2, 130}
 
 

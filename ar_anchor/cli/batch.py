@@ -1,6 +1,6 @@
 """`ar-anchor batch`: replay many recordings, one task each, on local processes or a Ray cluster.
 
-What is a recording (docs/batch.md): a video file is one; a folder holding video files is those videos
+What is a recording (docs/batch-and-cluster.md): a video file is one; a folder holding video files is those videos
 (its images, if any, are ignored); a folder of images only is one image-sequence recording, as
 ``replay`` takes it; a quoted glob is expanded: the videos it matches are one recording each, and the
 images it matches are, together, one image-sequence recording (the glob itself, as ``replay`` takes it).
@@ -64,7 +64,7 @@ def add_parser(commands: Any) -> None:
         "--manifest) as `ar-anchor replay` would, each into OUT/<name>/, in parallel: local processes "
         "(--jobs) or Ray (--ray). OUT/runs.parquet (runs.csv without pyarrow) has one row per recording. "
         "Recordings already done with the same source and options are skipped (--force: again). "
-        "See docs/batch.md.",
+        "See docs/batch-and-cluster.md.",
     )
     batch.add_argument(
         "sources",

@@ -34,7 +34,7 @@ def add_parser(commands: Any) -> None:
         "Read RUN_DIR/poses.csv (a run of demo, replay or live) and write, beside it or into --out: poses_ext.csv "
         "(quaternion, translation and 4x4 matrix of each pose), tum/<target>.txt (the camera's trajectory in "
         "each target's frame, TUM format) and run.mcap (a ROS 2 bag: /tf, /camera/camera_info and, with "
-        "--images, /camera/image/compressed). See docs/exports.md.",
+        "--images, /camera/image/compressed). See docs/outputs-and-viewer.md.",
     )
     export.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="the output directory of a run")
     export.add_argument("--out", type=output_path, default=None, help="write the exports here (default: into RUN_DIR)")
@@ -75,7 +75,7 @@ def add_export_options(parser: argparse.ArgumentParser, images_from: str) -> Non
         "--export",
         action="store_true",
         help="after the run, export its poses into --out as `ar-anchor export` does: poses_ext.csv, tum/, "
-        "run.mcap (docs/exports.md)",
+        "run.mcap (docs/outputs-and-viewer.md)",
     )
     parser.add_argument(
         "--export-images",

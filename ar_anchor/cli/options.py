@@ -191,7 +191,7 @@ def add_viewer_options(parser: argparse.ArgumentParser) -> None:
 
 def add_camera_options(parser: argparse.ArgumentParser) -> None:
     """--recording-id and --name: several processes, one per camera, streaming into one recording (see
-    :mod:`ar_anchor.viz.recorder` and docs/usage.md, "Several cameras into one viewer")."""
+    :mod:`ar_anchor.viz.recorder` and docs/outputs-and-viewer.md, "Several cameras into one viewer")."""
     parser.add_argument(
         "--recording-id",
         type=recording_id,
@@ -233,7 +233,7 @@ def add_tracker_options(parser: argparse.ArgumentParser) -> None:
         "--learn-groups",
         action="store_true",
         help="[groups] learn: markers whose relative pose holds over frames and viewpoints are solved together "
-        "as a learned board, board:group-N (see docs/groups.md)",
+        "as a learned board, board:group-N (see docs/tracking-and-states.md)",
     )
 
 

@@ -530,7 +530,7 @@ class Tracker:
         detection that jumped, whose velocity would be made of the jump), the first frame, or one after a
         gap of more than ``restart_gap_s`` is left as detected. Without this, a hand-held camera's pose is
         a mix of moments that varies with its motion: sheared markers, and the main jitter of a joint
-        pose far away (docs/groups.md)."""
+        pose far away (docs/tracking-and-states.md)."""
         readout = self.config.pose.rolling_shutter_s
         now = {int(i): c.copy() for i, c in zip(detections.ids.tolist(), detections.corners)}
         previous, self._shutter_previous = self._shutter_previous, (frame.timestamp_ns, now)

@@ -5,7 +5,7 @@ Every case checks what a user keeps: the exit code, one clear line and no traceb
 are complete and readable (``poses.csv`` parses up to the last frame ``summary.json`` counts, the
 recording verifies, a recorded video decodes to the frames it should have). The signal campaign
 repeats ``AR_ANCHOR_FAULT_REPEATS`` times per command and signal (default 2 in CI; the documented long
-run uses 25, see docs/robustness.md).
+run uses 25, see docs/fault-campaign.md).
 """
 
 from __future__ import annotations

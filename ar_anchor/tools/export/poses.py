@@ -39,7 +39,7 @@ __all__ = [
     "timestamp_ns_from_text",
 ]
 
-# limits of what is read as a poses.csv (documented in docs/exports.md): a row is ~400 characters, and the
+# limits of what is read as a poses.csv (documented in docs/outputs-and-viewer.md): a row is ~400 characters, and the
 # file is read line by line with this bound (a longer line is refused before it is parsed: memory stays small)
 MAX_LINE_CHARS = 65536
 # a rotation vector longer than this is no rotation ar-anchor wrote (it writes at most pi: one turn is 2 pi)
