@@ -97,7 +97,8 @@ def add_parsers(commands: Any) -> None:
         default=None,
         metavar="FILE.toml",
         help="the board's TOML, as `ar-anchor markers --board charuco` wrote it beside the sheet: squares, "
-        "lengths and dictionary from it (then the five options below are not needed)",
+        "lengths, dictionary and legacy pattern from it (then the options below are not needed; given, they must "
+        "agree with it)",
     )
     calibrate.add_argument("--charuco", default=None, metavar="CxR", help="board squares across x down, e.g. 5x7")
     calibrate.add_argument(
@@ -110,7 +111,12 @@ def add_parsers(commands: Any) -> None:
         help="chessboard square side, e.g. 30mm or 3cm (a bare number is metres)",
     )
     calibrate.add_argument(
-        "--square-m", dest="square_m", action=SameLength, type=length("m"), metavar="LENGTH", help="= --square-length"
+        "--square-m",
+        dest="square_m",
+        action=SameLength,
+        type=length("m"),
+        metavar="LENGTH",
+        help="the same as --square-length (its older name)",
     )
     calibrate.add_argument(
         "--marker-length",
@@ -122,7 +128,12 @@ def add_parsers(commands: Any) -> None:
         help="marker side, e.g. 22mm (a bare number is metres)",
     )
     calibrate.add_argument(
-        "--marker-m", dest="marker_m", action=SameLength, type=length("m"), metavar="LENGTH", help="= --marker-length"
+        "--marker-m",
+        dest="marker_m",
+        action=SameLength,
+        type=length("m"),
+        metavar="LENGTH",
+        help="the same as --marker-length (its older name)",
     )
     calibrate.add_argument(
         "--dictionary", default=None, help="cv2.aruco dictionary of the board's markers, e.g. 6x6_250 or DICT_6X6_250"
