@@ -1,7 +1,7 @@
 """Lengths as the user types them: ``50mm``, ``5cm``, ``0.05m`` or a bare number in the option's own unit.
 
-Every length option of the command line reads its value through :func:`parse_length` (the argparse
-type is :func:`ar_anchor.cli.options.length`), so a marker side can be given in whichever unit is at
+Every length option of the command line reads its value through :func:`parse_length` (its argparse
+type is :func:`length_option`, ``length`` in :mod:`ar_anchor.cli.options`), so a marker side can be given in whichever unit is at
 hand, and a bare number keeps the unit the option always had (metres for ``--marker-length``,
 millimetres for ``markers --size-mm``). The unit follows the number, with or without a space, in any
 case; nothing but ``mm``, ``cm`` and ``m`` is read (an inch is not a guess worth making).
@@ -13,7 +13,7 @@ import argparse
 import math
 import re
 
-__all__ = ["LENGTH_FORMS", "UNITS_M", "LengthError", "format_length", "length_option", "parse_length"]
+__all__ = ["LENGTH_FORMS", "UNITS_M", "LengthError", "length_option", "parse_length"]
 
 # metres per unit
 UNITS_M = {"mm": 0.001, "cm": 0.01, "m": 1.0}
@@ -46,13 +46,6 @@ def parse_length(text: str, bare_unit: str = "m", *, to: str | None = None) -> f
     if not math.isfinite(value):
         raise LengthError(f"{forms}, got {text!r}")
     return value
-
-
-def format_length(metres: float) -> str:
-    """A length for messages, in the unit that reads best: ``34mm``, ``1.5m`` (``repr``-short numbers)."""
-    if abs(metres) >= 1.0 or metres == 0:
-        return f"{metres:g}m"
-    return f"{metres * 1000:g}mm"
 
 
 def length_option(
