@@ -63,11 +63,6 @@ class SameLength(argparse.Action):
         setattr(namespace, self.dest, values)
 
 
-def length_flag(args: argparse.Namespace, dest: str, default: str) -> str:
-    """The flag the user typed for a length stored in ``dest`` (``default`` when none or not recorded)."""
-    return (getattr(args, "length_flags", None) or {}).get(dest) or default
-
-
 def output_path(text: str) -> Path:
     """An argparse type: a path to write to. An empty one is refused (it would mean the current folder)."""
     if not text:
