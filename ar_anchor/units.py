@@ -1,10 +1,11 @@
 """Lengths as the user types them: ``50mm``, ``5cm``, ``0.05m`` or a bare number in the option's own unit.
 
 Every length option of the command line reads its value through :func:`parse_length` (its argparse
-type is :func:`length_option`, ``length`` in :mod:`ar_anchor.cli.options`), so a marker side can be given in whichever unit is at
-hand, and a bare number keeps the unit the option always had (metres for ``--marker-length``,
-millimetres for ``markers --size-mm``). The unit follows the number, with or without a space, in any
-case; nothing but ``mm``, ``cm`` and ``m`` is read (an inch is not a guess worth making).
+type is :func:`length_option`, ``length`` in :mod:`ar_anchor.cli.options`), so a marker side can be
+given in whichever unit is at hand, and a bare number keeps the unit the option always had (metres
+for ``--marker-length``, millimetres for ``markers --size-mm``). The unit follows the number, with or
+without a space, in any case; nothing but ``mm``, ``cm`` and ``m`` is read (an inch is not a guess
+worth making).
 """
 
 from __future__ import annotations
