@@ -3,7 +3,7 @@ package), and rerun is imported only by ``viz/``.
 
 Layers, bottom to top (docs/architecture.md)::
 
-    errors, geometry, lazy, targets  <  camera  <  boards  <  config  <  synthetic  <  sources  <  track
+    errors, geometry, lazy, targets, units  <  camera  <  boards  <  config  <  synthetic  <  sources  <  track
       <  render, viz  <  run  <  tools, bench  <  cli
 
 Peers (render and viz, tools and bench) do not import each other.
@@ -23,6 +23,7 @@ LAYER = {
     "geometry": 0,
     "lazy": 0,
     "targets": 0,
+    "units": 0,
     "camera": 1,
     "boards": 2,
     "config": 3,

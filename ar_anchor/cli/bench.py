@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_OK, InputError
-from .options import add_command, int_at_least, load_tracker_config, non_negative_float, positive_float
+from .options import add_command, int_at_least, length, load_tracker_config, non_negative_float
 
 
 def _clip_list(text: str) -> tuple[str, ...]:
@@ -50,7 +50,11 @@ def add_parser(commands: Any) -> None:
     )
     bench.add_argument("--dictionary", default=None, help="real: override [detector] dictionary")
     bench.add_argument(
-        "--marker-length", type=positive_float, default=None, help="real: override [markers] length_m (metres)"
+        "--marker-length",
+        type=length("m"),
+        default=None,
+        metavar="LENGTH",
+        help="real: override [markers] length_m, e.g. 50mm (a bare number is metres)",
     )
     bench.add_argument(
         "--layout", type=Path, default=None, help="real: printed marker map (ArUco YAML or TOML): also score vs. it"

@@ -16,6 +16,7 @@ from .options import (
     default_out,
     float_in,
     int_at_least,
+    length,
     load_tracker_config,
     run_options,
 )
@@ -47,10 +48,16 @@ def add_parser(commands: Any) -> None:
         help="camera path (default sweep: near to far)",
     )
     demo.add_argument(
-        "--near", type=float_in(0.02, 100.0), default=0.35, help="nearest camera distance, metres (0.02-100)"
+        "--near",
+        type=length("m", low=0.02, high=100.0, inclusive=True),
+        default=0.35,
+        help="nearest camera distance, e.g. 35cm or 0.35 (a bare number is metres; 0.02-100 m)",
     )
     demo.add_argument(
-        "--far", type=float_in(0.02, 100.0), default=3.0, help="farthest camera distance, metres (0.02-100)"
+        "--far",
+        type=length("m", low=0.02, high=100.0, inclusive=True),
+        default=3.0,
+        help="farthest camera distance, e.g. 3m (a bare number is metres; 0.02-100 m)",
     )
     demo.add_argument("--noise", type=float_in(0.0, 100.0), default=2.0, help="sensor noise sigma, grey levels (0-100)")
     demo.add_argument("--blur", type=float_in(0.0, 50.0), default=0.6, help="optical blur sigma, pixels (0-50)")

@@ -11,6 +11,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..units import length_option as length  # the argparse type of every length option
+
 
 def int_at_least(minimum: int):
     """An argparse type: an integer ``>= minimum``."""
@@ -44,6 +46,21 @@ def float_above(minimum: float, *, inclusive: bool):
 
 positive_float = float_above(0.0, inclusive=False)
 non_negative_float = float_above(0.0, inclusive=True)
+
+
+class SameLength(argparse.Action):
+    """Stores a length option and its aliases into one ``dest`` (``--marker-length`` and ``--size-mm``); a second
+    alias given in the same command is refused, naming both. ``namespace.length_flags[dest]`` keeps the flag
+    the user typed, for messages."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any, option=None):
+        flags = dict(getattr(namespace, "length_flags", None) or {})
+        previous = flags.get(self.dest)
+        if previous is not None and previous != option:
+            parser.error(f"argument {option}: the same length as {previous}: give one of them")
+        flags[self.dest] = option
+        namespace.length_flags = flags
+        setattr(namespace, self.dest, values)
 
 
 def output_path(text: str) -> Path:
@@ -220,9 +237,17 @@ def add_tracker_options(parser: argparse.ArgumentParser) -> None:
         help="tracker TOML (default: configs/default.toml values: lone markers, no boards; "
         "demo and live --device synthetic: configs/demo.toml)",
     )
-    parser.add_argument("--dictionary", default=None, help="override [detector] dictionary, e.g. DICT_ARUCO_ORIGINAL")
     parser.add_argument(
-        "--marker-length", type=positive_float, default=None, help="override [markers] length_m: marker side in metres"
+        "--dictionary",
+        default=None,
+        help="override [detector] dictionary, e.g. DICT_ARUCO_ORIGINAL, 4x4_50 or tag36h11",
+    )
+    parser.add_argument(
+        "--marker-length",
+        type=length("m"),
+        default=None,
+        metavar="LENGTH",
+        help="override [markers] length_m: marker side, e.g. 50mm, 5cm or 0.05 (a bare number is metres)",
     )
     parser.add_argument(
         "--no-filter",

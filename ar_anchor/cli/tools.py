@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
-from .options import add_command, int_at_least, positive_float
+from .options import SameLength, add_command, int_at_least, length, positive_float
 
 
 def add_parsers(commands: Any) -> None:
@@ -21,14 +21,58 @@ def add_parsers(commands: Any) -> None:
         "(exact physical size, scale ruler, cut marks, caption), SVG or PNG at --dpi; a TOML snippet "
         "beside each sheet configures the tracker for exactly what was printed.",
     )
-    markers.add_argument("--dictionary", default="DICT_4X4_50", help="cv2.aruco dictionary (default DICT_4X4_50)")
+    markers.add_argument(
+        "--dictionary",
+        default="DICT_4X4_50",
+        help="cv2.aruco dictionary, e.g. 4x4_50 or tag36h11 (default DICT_4X4_50)",
+    )
     markers.add_argument("--ids", default=None, help="single markers: ids, e.g. 0-3 or 0,5,7 or 0-3,9")
-    markers.add_argument("--size-mm", type=positive_float, default=None, help="marker side in mm (the black square)")
+    markers.add_argument(
+        "--marker-length",
+        dest="size_mm",
+        action=SameLength,
+        type=length("m", to="mm"),
+        default=None,
+        metavar="LENGTH",
+        help="marker side (the black square), e.g. 50mm or 5cm (a bare number is metres)",
+    )
+    markers.add_argument(
+        "--size-mm",
+        dest="size_mm",
+        action=SameLength,
+        type=length("mm"),
+        default=None,
+        metavar="LENGTH",
+        help="the same as --marker-length, a bare number in mm",
+    )
     markers.add_argument("--board", choices=("grid", "charuco"), default=None, help="print a board instead")
     markers.add_argument("--cols", type=int_at_least(1), default=None, help="board: markers (grid) or squares across")
     markers.add_argument("--rows", type=int_at_least(1), default=None, help="board: markers (grid) or squares down")
-    markers.add_argument("--gap-mm", type=positive_float, default=None, help="grid: gap between markers in mm")
-    markers.add_argument("--square-mm", type=positive_float, default=None, help="charuco: chessboard square in mm")
+    markers.add_argument(
+        "--gap-mm",
+        type=length("mm"),
+        default=None,
+        metavar="LENGTH",
+        help="grid: gap between markers, e.g. 10mm or 1cm (a bare number is mm)",
+    )
+    markers.add_argument(
+        "--square-length",
+        dest="square_mm",
+        action=SameLength,
+        type=length("m", to="mm"),
+        default=None,
+        metavar="LENGTH",
+        help="charuco: chessboard square side, e.g. 30mm or 3cm (a bare number is metres)",
+    )
+    markers.add_argument(
+        "--square-mm",
+        dest="square_mm",
+        action=SameLength,
+        type=length("mm"),
+        default=None,
+        metavar="LENGTH",
+        help="the same as --square-length, a bare number in mm",
+    )
     markers.add_argument("--first-id", type=int_at_least(0), default=0, help="board: id of its first marker")
     markers.add_argument("--legacy", action="store_true", help="charuco: the legacy (pre-4.6) pattern")
     markers.add_argument("--name", default=None, help="board name in the config snippet (default: grid/charuco)")
@@ -47,11 +91,56 @@ def add_parsers(commands: Any) -> None:
         "error and image coverage, and write the OpenCV YAML camera file every other command reads.",
     )
     calibrate.add_argument("source", metavar="SOURCE", help="image folder or glob, video file, or device")
-    calibrate.add_argument("--charuco", required=True, metavar="CxR", help="board squares across x down, e.g. 5x7")
-    calibrate.add_argument("--square-m", type=positive_float, required=True, help="chessboard square side, metres")
-    calibrate.add_argument("--marker-m", type=positive_float, required=True, help="marker side, metres")
-    calibrate.add_argument("--dictionary", required=True, help="cv2.aruco dictionary of the board's markers")
-    calibrate.add_argument("--legacy", action="store_true", help="the board uses the legacy (pre-4.6) pattern")
+    calibrate.add_argument(
+        "--board",
+        type=Path,
+        default=None,
+        metavar="FILE.toml",
+        help="the board's TOML, as `ar-anchor markers --board charuco` wrote it beside the sheet: squares, "
+        "lengths, dictionary and legacy pattern from it (then the options below are not needed; given, they must "
+        "agree with it)",
+    )
+    calibrate.add_argument("--charuco", default=None, metavar="CxR", help="board squares across x down, e.g. 5x7")
+    calibrate.add_argument(
+        "--square-length",
+        dest="square_m",
+        action=SameLength,
+        type=length("m"),
+        default=None,
+        metavar="LENGTH",
+        help="chessboard square side, e.g. 30mm or 3cm (a bare number is metres)",
+    )
+    calibrate.add_argument(
+        "--square-m",
+        dest="square_m",
+        action=SameLength,
+        type=length("m"),
+        metavar="LENGTH",
+        help="the same as --square-length (its older name)",
+    )
+    calibrate.add_argument(
+        "--marker-length",
+        dest="marker_m",
+        action=SameLength,
+        type=length("m"),
+        default=None,
+        metavar="LENGTH",
+        help="marker side, e.g. 22mm (a bare number is metres)",
+    )
+    calibrate.add_argument(
+        "--marker-m",
+        dest="marker_m",
+        action=SameLength,
+        type=length("m"),
+        metavar="LENGTH",
+        help="the same as --marker-length (its older name)",
+    )
+    calibrate.add_argument(
+        "--dictionary", default=None, help="cv2.aruco dictionary of the board's markers, e.g. 6x6_250 or DICT_6X6_250"
+    )
+    calibrate.add_argument(
+        "--legacy", action="store_true", default=None, help="the board uses the legacy (pre-4.6) pattern"
+    )
     calibrate.add_argument("--out", type=Path, required=True, help="camera YAML file to write")
     calibrate.add_argument("--max-views", type=int_at_least(3), default=40, help="views used at most (default 40)")
     calibrate.add_argument("--min-views", type=int_at_least(3), default=6, help="views needed at least (default 6)")
@@ -95,7 +184,11 @@ def add_map_parser(commands: Any) -> None:
     mapper.add_argument("--camera", type=Path, required=True, help="camera YAML of the camera that filmed VIDEO")
     mapper.add_argument("--dictionary", required=True, help="cv2.aruco dictionary of the markers, e.g. DICT_4X4_50")
     mapper.add_argument(
-        "--marker-length", type=positive_float, required=True, help="side of each marker's black square, metres"
+        "--marker-length",
+        type=length("m"),
+        required=True,
+        metavar="LENGTH",
+        help="side of each marker's black square, e.g. 50mm (a bare number is metres)",
     )
     mapper.add_argument("--out", type=Path, required=True, help="layout file to write: layout.yml or layout.toml")
     mapper.add_argument("--origin", type=int_at_least(0), default=None, help="marker id of the map frame")

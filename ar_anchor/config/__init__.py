@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from . import model
 from .board import BOARD_KINDS, BoardConfig
-from .dictionaries import CORNER_REFINEMENTS, dictionary_id, dictionary_names, dictionary_size
+from .dictionaries import CORNER_REFINEMENTS, canonical_dictionary, dictionary_id, dictionary_names, dictionary_size
 from .keys import ConfigValueError
 from .model import *  # noqa: F403 - model.__all__, exported as this package's own (below)
 from .read import load_config, parse_config
@@ -29,6 +29,7 @@ __all__ = [
     "CORNER_REFINEMENTS",
     "BoardConfig",
     "ConfigValueError",
+    "canonical_dictionary",
     "dictionary_id",
     "dictionary_names",
     "dictionary_size",

@@ -21,7 +21,7 @@ from typing import Any
 from ..errors import ConfigError
 from ..targets import TargetId, target_pattern_problem
 from .board import BoardConfig
-from .dictionaries import CORNER_REFINEMENTS, dictionary_id, dictionary_size
+from .dictionaries import CORNER_REFINEMENTS, canonical_dictionary, dictionary_id, dictionary_size
 from .keys import Check, ConfigValueError, in_range, key, non_negative, one_of, positive, printable
 
 __all__ = [
@@ -43,15 +43,16 @@ __all__ = [
 MAX_PLAUSIBLE_LENGTH_M = 1.0  # a marker side above this is most likely millimetres (34 for 0.034)
 
 
-def implausible_length_hint(length_m: float, name: str) -> str | None:
+def implausible_length_hint(length_m: float, name: str, what: str = "a marker") -> str | None:
     """A warning for a marker side of ``length_m`` metres set by ``name`` (``--marker-length``, ``[markers]
     length_m =``) when it is over a metre: ``--marker-length 34: a marker 34 m wide? did you give
-    millimetres? 34 mm is --marker-length 0.034``; None for a plausible one."""
+    millimetres? 34 mm is --marker-length 0.034 (or 34mm)``; None for a plausible one."""
     if not length_m > MAX_PLAUSIBLE_LENGTH_M:
         return None
+    typed = f" (or {length_m:g}mm)" if name.startswith("--") else ""  # an option reads units, a TOML key does not
     return (
-        f"{name} {length_m:g}: a marker {length_m:g} m wide? did you give millimetres? "
-        f"{length_m:g} mm is {name} {length_m / 1000:g}"
+        f"{name} {length_m:g}: {what} {length_m:g} m wide? did you give millimetres? "
+        f"{length_m:g} mm is {name} {length_m / 1000:g}{typed}"
     )
 
 
@@ -490,8 +491,10 @@ class TrackerConfig:
         return config
 
     def _with_dictionary(self, dictionary: str) -> TrackerConfig:
+        """Any spelling in (``tag36h11``, errors name it as typed), OpenCV's canonical name stored and written."""
         try:
-            size = dictionary_size(dictionary)
+            canonical = canonical_dictionary(dictionary)
+            size = dictionary_size(canonical)
         except ConfigValueError as err:
             raise _override_error("detector", "dictionary", dictionary, err.problem) from None
         for board in self.boards:
@@ -503,8 +506,8 @@ class TrackerConfig:
                 raise _override_error("detector", "dictionary", dictionary, problem)
         return dataclasses.replace(
             self,
-            detector=dataclasses.replace(self.detector, dictionary=dictionary),
-            boards=tuple(dataclasses.replace(b, dictionary=dictionary) for b in self.boards),
+            detector=dataclasses.replace(self.detector, dictionary=canonical),
+            boards=tuple(dataclasses.replace(b, dictionary=canonical) for b in self.boards),
         )
 
 

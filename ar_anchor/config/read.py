@@ -31,7 +31,7 @@ from ..boards import layout_from_mapping, read_layout
 from ..camera import input_file_problem
 from ..errors import ConfigError, printable
 from .board import BOARD_KEYS, BoardConfig, BoardKeys, CharucoBoardKeys, CustomBoardKeys
-from .dictionaries import dictionary_size
+from .dictionaries import canonical_dictionary, dictionary_size
 from .keys import ConfigValueError, Key, declared, default_of, table_keys
 from .model import OverlayConfig, TrackerConfig, implausible_length_hint
 
@@ -203,6 +203,7 @@ def parse_config(data: Mapping[str, Any], path: str = "<config>") -> TrackerConf
     """Validate a parsed TOML document into a :class:`TrackerConfig` (``path``: named in errors)."""
     root = Table(data, "top level", path)
     detector = read_table(root, "detector")
+    detector = dataclasses.replace(detector, dictionary=canonical_dictionary(detector.dictionary))  # as written
     limit = dictionary_size(detector.dictionary)
     markers = read_table(root, "markers", limit)
     boards = _read_boards(root, detector.dictionary, limit, markers.lengths_m)
@@ -317,6 +318,14 @@ def _board_of_cells(table: Table, name: str, kind: str, dictionary: str, limit: 
     return board
 
 
+def _same_dictionary(name: str, dictionary: str) -> bool:
+    """Do ``name`` (any spelling) and ``dictionary`` name the same dictionary? (An unknown name does not.)"""
+    try:
+        return canonical_dictionary(name) == canonical_dictionary(dictionary)
+    except ConfigValueError:
+        return False
+
+
 # a ChArUco board's keys that BoardConfig names otherwise (the chessboard's squares are the board's cells)
 _CHARUCO_AS_BOARD = {"squares_x": "cols", "squares_y": "rows"}
 
@@ -331,7 +340,7 @@ def _charuco_as_board(table: Table, values: dict[str, Any], dictionary: str) -> 
             f"must be smaller than square_length_m ({keys.square_length_m:g}), got {keys.marker_length_m!r}",
             keys.marker_length_m,
         )
-    if "dictionary" in values and keys.dictionary.upper() != dictionary.upper():
+    if "dictionary" in values and not _same_dictionary(keys.dictionary, dictionary):
         problem = f"must be the detector's dictionary ({dictionary}), got {keys.dictionary!r}"
         raise table.fail("dictionary", problem, keys.dictionary)
     every = dataclasses.asdict(keys)

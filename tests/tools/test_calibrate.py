@@ -498,3 +498,119 @@ def test_cli_errors_are_one_line_without_traceback(case, code, expected, views_d
         assert text in errors[0], errors[0]
     assert not (tmp_path / "camera.yml").exists() and not (tmp_path / "camera.rrd").exists()
     assert not list(tmp_path.glob(".*tmp*")), "temporary file left behind"
+
+
+# ======================================================================== --board FILE.toml
+
+
+def _markers(args: list[str], cwd: Path) -> Path:
+    """Run ``ar-anchor markers`` (as a user would) and return the board TOML it wrote beside the sheet."""
+    result = subprocess.run(
+        [sys.executable, "-m", "ar_anchor", "markers", "-q", *args, "--out", "sheet"],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    (toml,) = (cwd / "sheet").glob("*.toml")
+    return toml
+
+
+@pytest.mark.slow
+def test_board_file_from_markers_gives_the_same_calibration_as_the_long_form(views_dir, tmp_path):
+    # given the board of the rendered views printed by `ar-anchor markers` (9x6 squares, DICT_6X6_250, the views'
+    # marker/square ratio; at 15/11 mm instead of 30/22 mm so that it fits on A4: the scale of the board does
+    # not change the intrinsics) and the TOML it wrote beside the sheet
+    toml = _markers(
+        [
+            "--board",
+            "charuco",
+            "--cols",
+            "9",
+            "--rows",
+            "6",
+            "--square-length",
+            "15mm",
+            "--marker-length",
+            "11mm",
+            "--dictionary",
+            "6x6_250",
+        ],
+        tmp_path,
+    )
+    folder = copy_views(views_dir, tmp_path / "shots", 8)
+    # when the views are calibrated with --board, and with the long form of the same board
+    short = run_cli([str(folder), "--board", str(toml), "--out", "board.yml"], tmp_path)
+    long_form = ["--charuco", "9x6", "--square-m", "0.015", "--marker-length", "11mm", "--dictionary", "DICT_6X6_250"]
+    long = run_cli([str(folder), *long_form, "--out", "long.yml"], tmp_path)
+    # then both succeed with the same camera, to 1e-9, and the same board
+    assert short.returncode == 0, short.stderr
+    assert long.returncode == 0, long.stderr
+    by_board, by_options = (CameraModel.from_yaml(tmp_path / name) for name in ("board.yml", "long.yml"))
+    np.testing.assert_allclose(by_board.camera_matrix, by_options.camera_matrix, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(by_board.dist_coeffs, by_options.dist_coeffs, rtol=0, atol=1e-9)
+    assert abs(by_board.camera_matrix[0, 0] / TRUE_K[0, 0] - 1) < 0.01  # and it is the rendered camera
+    boards = []
+    for name in ("board.yml", "long.yml"):
+        storage = cv2.FileStorage(str(tmp_path / name), cv2.FILE_STORAGE_READ)
+        boards.append(storage.getNode("board").string())
+        storage.release()
+    assert boards[0] == boards[1] == "charuco 9x6 square 0.015 marker 0.011 DICT_6X6_250 legacy=false"
+    # and a long option that agrees with the file may stay; one that disagrees is refused, naming both
+    agree = run_cli([str(folder), "--board", str(toml), "--dictionary", "DICT_6X6_250", "--out", "again.yml"], tmp_path)
+    assert agree.returncode == 0, agree.stderr
+    clash = run_cli([str(folder), "--board", str(toml), "--marker-m", "0.012", "--out", "clash.yml"], tmp_path)
+    assert clash.returncode == 2, clash.stderr
+    errors = [line for line in clash.stderr.splitlines() if line.startswith("ar-anchor: error:")]
+    assert len(errors) == 1 and "--board" in errors[0] and "--marker-m disagree" in errors[0], clash.stderr
+    assert "0.011 m" in errors[0] and "0.012 m" in errors[0]
+    assert not (tmp_path / "clash.yml").exists()
+
+
+@pytest.mark.parametrize(
+    ("sheet", "expected"),
+    [
+        (["--board", "grid", "--cols", "2", "--rows", "2", "--marker-length", "4cm", "--gap-mm", "10"], "a grid board"),
+        (["--ids", "0-3", "--marker-length", "5cm"], "no [[boards]] table"),
+        (
+            [
+                "--board",
+                "charuco",
+                "--cols",
+                "5",
+                "--rows",
+                "7",
+                "--square-mm",
+                "30",
+                "--size-mm",
+                "20",
+                "--first-id",
+                "10",
+            ],
+            "ids 10..26",
+        ),
+    ],
+)
+def test_board_file_without_a_charuco_board_from_0_is_one_line(sheet, expected, views_dir, tmp_path):
+    toml = _markers(sheet, tmp_path)
+    folder = copy_views(views_dir, tmp_path / "shots", 3)
+    result = run_cli([str(folder), "--board", str(toml), "--out", "camera.yml"], tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ar-anchor: error:")]
+    assert len(errors) == 1 and errors[0].startswith(f"ar-anchor: error: --board {toml}: "), result.stderr
+    assert expected in errors[0], errors[0]
+    assert "ChArUco" in errors[0]
+
+
+def test_without_board_the_long_options_are_required(views_dir, tmp_path):
+    folder = copy_views(views_dir, tmp_path / "shots", 3)
+    result = run_cli([str(folder), "--charuco", "9x6", "--out", "camera.yml"], tmp_path)
+    assert result.returncode == 2, result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ar-anchor: error:")]
+    assert errors == [
+        "ar-anchor: error: --square-length, --marker-length, --dictionary: required, or --board FILE.toml "
+        "(the board file ar-anchor markers wrote beside the sheet)"
+    ], result.stderr

@@ -463,7 +463,7 @@ def test_config_snippet_charuco(tmp_path: Path) -> None:
 
 
 BAD_ARGS = [
-    (["--ids", "0-3"], r"--size-mm: required"),
+    (["--ids", "0-3"], r"--marker-length: required"),
     (["--size-mm", "50"], r"--ids: nothing to print"),
     (["--ids", "0-3", "--size-mm", "50", "--cols", "2"], r"--cols: not used"),
     (["--ids", "0-3", "--size-mm", "50", "--first-id", "4"], r"--first-id: not used"),
@@ -478,7 +478,7 @@ BAD_ARGS = [
     (["--board", "grid", "--cols", "8", "--rows", "8", "--size-mm", "10", "--gap-mm", "2"], r"--first-id: .*64 ids"),
     (["--board", "grid", "--cols", "2", "--rows", "2", "--size-mm", "9", "--gap-mm", "2", "--legacy"], r"--legacy"),
     (["--board", "grid", "--cols", "2", "--rows", "2", "--size-mm", "9", "--gap-mm", "2", "--name", "a b"], r"--name"),
-    (["--board", "charuco", "--cols", "5", "--rows", "7", "--size-mm", "20"], r"--square-mm: required"),
+    (["--board", "charuco", "--cols", "5", "--rows", "7", "--size-mm", "20"], r"--square-length: required"),
     (
         ["--board", "charuco", "--cols", "5", "--rows", "7", "--square-mm", "20", "--size-mm", "20"],
         r"--size-mm: .*smaller",
@@ -545,7 +545,7 @@ def test_cli_success_and_usage_error(tmp_path: Path) -> None:
     bad = run_cli(["--ids", "0-3", "--out", "x"], tmp_path)
     assert bad.returncode == 2
     lines = bad.stderr.strip().splitlines()
-    assert len(lines) == 1 and "--size-mm" in lines[0], bad.stderr
+    assert len(lines) == 1 and "--marker-length" in lines[0], bad.stderr
     assert "Traceback" not in bad.stderr + bad.stdout
     assert not (tmp_path / "x").exists()
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ...config import dictionary_id, dictionary_names
+from ...config import canonical_dictionary, dictionary_id
 from ...errors import ConfigError, InputError
 
 __all__ = [
@@ -68,9 +68,18 @@ class CharucoSpec:
 
     @classmethod
     def parse(
-        cls, charuco: str, square_m: float, marker_m: float, dictionary: str, legacy: bool = False
+        cls,
+        charuco: str,
+        square_m: float,
+        marker_m: float,
+        dictionary: str,
+        legacy: bool = False,
+        *,
+        options: tuple[str, str] = ("--square-m", "--marker-m"),
     ) -> CharucoSpec:
-        """Validate the command-line description; :class:`InputError` names the option at fault."""
+        """Validate the command-line description; :class:`InputError` names the option at fault (the lengths':
+        ``options``, the flags the user typed for the square and the marker)."""
+        square_option, marker_option = options
         text = str(charuco).strip().lower()
         parts = text.split("x")
         if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
@@ -78,18 +87,19 @@ class CharucoSpec:
         cols, rows = (int(p) for p in parts)
         if cols < 2 or rows < 2:
             raise InputError(f"--charuco: a board needs at least 2x2 squares, got {charuco!r}")
-        for option, value in (("--square-m", square_m), ("--marker-m", marker_m)):
+        for option, value in ((square_option, square_m), (marker_option, marker_m)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InputError(f"{option}: must be a length > 0 in metres, got {value!r}")
         if marker_m >= square_m:
             raise InputError(
-                f"--marker-m: the marker ({marker_m:g} m) must be smaller than the square (--square-m {square_m:g} m)"
+                f"{marker_option}: the marker ({marker_m:g} m) must be smaller than the square "
+                f"({square_option} {square_m:g} m)"
             )
         try:
-            dict_id = dictionary_id(dictionary)
+            canonical = canonical_dictionary(dictionary)
         except ConfigError as err:
             raise InputError(f"--dictionary: {err}") from None
-        canonical = next((n for n in dictionary_names() if int(getattr(cv2.aruco, n)) == dict_id), str(dictionary))
+        dict_id = dictionary_id(canonical)
         spec = cls(cols, rows, float(square_m), float(marker_m), canonical, bool(legacy))
         available = cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0]
         if spec.marker_count > available:

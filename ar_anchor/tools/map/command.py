@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ...camera import CameraModel
 from ...config import ConfigValueError, implausible_length_hint
-from ...config.dictionaries import dictionary_id
+from ...config.dictionaries import canonical_dictionary
 from ...errors import ConfigError, InputError, OutputError, SourceError, printable
 from ...run.paths import Named, OutDirLock, check_paths, spec_inputs
 from .observe import observe_sources
@@ -120,13 +120,13 @@ def _written_by_map(report: Path) -> bool:
 
 
 def _check_options(args: argparse.Namespace) -> None:
-    """The marker length, dictionary, --step and the inputs' existence (before anything is read)."""
+    """The marker length, dictionary (made canonical), --step and the inputs' existence (before anything is read)."""
     length = float(args.marker_length)
     hint = implausible_length_hint(length, "--marker-length")
     if hint is not None:
         raise InputError(hint)
     try:
-        dictionary_id(args.dictionary)
+        args.dictionary = canonical_dictionary(args.dictionary)  # tag36h11 in, DICT_APRILTAG_36H11 in the outputs
     except ConfigValueError as err:
         raise ConfigError(f"--dictionary: {err.problem}") from None
     for source in args.sources:

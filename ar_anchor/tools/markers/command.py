@@ -10,10 +10,11 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-from collections.abc import Sequence
-from contextlib import suppress
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
+from ...config import implausible_length_hint
 from ...errors import InputError, OutputError, printable
 from ...run.outputs import prepare_out_dir
 from ...run.paths import OutDirLock
@@ -88,13 +89,60 @@ def _write_files(out: Path, files: list[tuple[str, bytes]]) -> list[Path]:
     return written
 
 
+def _flag(dest: str) -> str:
+    """The option that sets ``dest``, as messages name it (a length: its canonical name, ``--marker-length``)."""
+    return _LENGTHS[dest][0] if dest in _LENGTHS else f"--{dest.replace('_', '-')}"
+
+
 def _given(args: argparse.Namespace, name: str) -> bool:
     value = getattr(args, name, None)
     return value not in (None, False)
 
 
+# the lengths markers reads in millimetres: their canonical option (a bare number in metres, as everywhere) and
+# the millimetre alias the sheet's messages name
+_LENGTHS = {
+    "size_mm": ("--marker-length", "--size-mm", "a marker"),
+    "square_mm": ("--square-length", "--square-mm", "a square"),
+}
+
+
+def _typed_flag(args: argparse.Namespace, dest: str) -> str | None:
+    """The flag the user typed for the length in ``dest`` (``--marker-length`` or ``--size-mm``), if recorded."""
+    return (getattr(args, "length_flags", None) or {}).get(dest)
+
+
 def sheet_from_args(args: argparse.Namespace) -> MarkerSheet:
-    """The sheet the ``markers`` options ask for; missing or misplaced options are InputErrors."""
+    """The sheet the ``markers`` options ask for; missing or misplaced options are InputErrors, naming each
+    length by the flag the user typed (``--marker-length`` or its millimetre alias ``--size-mm``)."""
+    for dest, (canonical, _alias, what) in _LENGTHS.items():
+        value_mm = getattr(args, dest, None)
+        if value_mm is not None and _typed_flag(args, dest) == canonical:
+            hint = implausible_length_hint(value_mm / 1000.0, canonical, what)
+            if hint is not None:  # a bare number is metres here: 50 is most likely 50 mm
+                raise InputError(hint)
+    with _as_typed(args):
+        return _sheet_from_args(args)
+
+
+@contextmanager
+def _as_typed(args: argparse.Namespace) -> Iterator[None]:
+    """An :class:`InputError` inside names each length by the flag the user typed (the sheet's messages name
+    the millimetre aliases, ``--size-mm``; the user may have typed ``--marker-length``)."""
+    try:
+        yield
+    except InputError as err:
+        message = str(err)
+        for dest, (_canonical, alias, _what) in _LENGTHS.items():
+            typed = _typed_flag(args, dest)
+            if typed is not None and typed != alias:
+                message = message.replace(alias, typed)
+        if message == str(err):
+            raise
+        raise InputError(message) from None
+
+
+def _sheet_from_args(args: argparse.Namespace) -> MarkerSheet:
     board = getattr(args, "board", None)
     paper = getattr(args, "paper", "a4")
     dictionary = getattr(args, "dictionary", "DICT_4X4_50")
@@ -104,16 +152,16 @@ def sheet_from_args(args: argparse.Namespace) -> MarkerSheet:
     def refuse(options: Sequence[str], mode: str) -> None:
         for option in options:
             if _given(args, option):
-                raise InputError(f"--{option.replace('_', '-')}: not used with {mode}")
+                raise InputError(f"{_typed_flag(args, option) or _flag(option)}: not used with {mode}")
 
     def require(options: Sequence[str], mode: str) -> None:
-        missing = [f"--{o.replace('_', '-')}" for o in options if getattr(args, o, None) is None]
+        missing = [_flag(o) for o in options if getattr(args, o, None) is None]
         if missing:
             raise InputError(f"{', '.join(missing)}: required with {mode}")
 
     if board is None:
         if getattr(args, "ids", None) is None:
-            raise InputError("--ids: nothing to print; give --ids and --size-mm for single markers, or --board")
+            raise InputError("--ids: nothing to print; give --ids and --marker-length for single markers, or --board")
         mode = "single markers (--ids)"
         refuse(("cols", "rows", "gap_mm", "square_mm", "legacy", "name"), mode)
         if first_id:
@@ -142,7 +190,8 @@ def run_markers(args: argparse.Namespace) -> int:
     fmt = getattr(args, "format", "pdf")
     dpi = getattr(args, "dpi", 300)
     out = getattr(args, "out", None) or Path("markers")
-    paths = write_sheet(sheet, out, fmt, dpi)
+    with _as_typed(args):
+        paths = write_sheet(sheet, out, fmt, dpi)
     if not getattr(args, "quiet", False):
         for path in paths:
             print(f"wrote {path}")

@@ -18,7 +18,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ...config import dictionary_id, dictionary_names, dictionary_size
+from ...config import canonical_dictionary as config_canonical_dictionary
+from ...config import dictionary_id, dictionary_size
 from ...errors import ConfigError, InputError
 from .layout import board_origin, sheet_pages
 from .page import PAPERS, Page, mm_text
@@ -79,10 +80,9 @@ def format_ids(ids: Iterable[int], sep: str = ",") -> str:
 def canonical_dictionary(name: str, option: str = "--dictionary") -> str:
     """The dictionary's canonical name (``DICT_4X4_50``) for any spelling the config accepts."""
     try:
-        wanted = dictionary_id(name)
+        return config_canonical_dictionary(name)
     except ConfigError as err:
         raise InputError(f"{option}: {err}") from None
-    return next(n for n in dictionary_names() if dictionary_id(n) == wanted)
 
 
 # ---------------------------------------------------------------------------- the sheet
@@ -348,7 +348,9 @@ def _check_length(option: str, value: float | None, minimum: float = 0.0) -> Non
     if value is None or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise InputError(f"{option}: must be a length in mm > 0, got {value!r}")
     if value < minimum:
-        raise InputError(f"{option}: must be at least {minimum:g} mm (nothing smaller prints), got {value!r}")
+        slip = value * 1000 >= minimum  # metres given to a millimetre option: today's hint, in the other direction
+        hint = f"; did you give metres? {value:g} m is {option} {value * 1000:g} (or {value:g}m)" if slip else ""
+        raise InputError(f"{option}: must be at least {minimum:g} mm (nothing smaller prints), got {value!r}{hint}")
 
 
 def _check_count(option: str, value: int | None, minimum: int) -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ...errors import CameraError, InputError
+from ...units import length_option
 from .files import DEFAULT_OUT
 
 if TYPE_CHECKING:  # imported where used: the parser (`ar-anchor --help`) must not load OpenCV and numpy
@@ -37,13 +38,18 @@ __all__ = [
 STUDIES = ("outliers", "ransac", "jitter")
 
 
-def _float_list(text: str, option: str) -> list[float]:
+def _float_list(text: str, option: str, *, lengths: bool = False) -> list[float]:
+    """Numbers separated by commas; ``lengths``: each a length (``30cm``, ``1m``; bare: metres) in metres."""
+    from ...units import LENGTH_FORMS, parse_length
     from .limits import MAX_VALUES
 
+    parse = parse_length if lengths else float
+    what = f"lengths such as {LENGTH_FORMS} (bare numbers are metres)" if lengths else "numbers"
+
     try:
-        values = [float(v) for v in text.split(",") if v.strip()]
+        values = [parse(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise InputError(f"{option}: expected numbers separated by commas, got {text!r}") from None
+        raise InputError(f"{option}: expected {what} separated by commas, got {text!r}") from None
     if not values or not all(math.isfinite(v) for v in values):
         raise InputError(f"{option}: expected numbers separated by commas, got {text!r}")
     if len(values) > MAX_VALUES:
@@ -98,8 +104,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     jitter = parser.add_argument_group("jitter")
     jitter.add_argument("--frames", type=int, metavar="N", help=f"frames per distance (default {FULL.frames})")
-    jitter.add_argument("--distances", metavar="M,...", help=f"distances in metres ({FULL.distances})")
-    jitter.add_argument("--marker-m", type=float, default=0.05, metavar="M", help="marker side, metres (0.05)")
+    jitter.add_argument(
+        "--distances", metavar="M,...", help=f"distances, e.g. 30cm,1m (a bare number is metres; {FULL.distances})"
+    )
+    jitter.add_argument(
+        "--marker-m",
+        "--marker-length",
+        dest="marker_m",
+        type=length_option("m", low=-math.inf),
+        default=0.05,
+        metavar="LENGTH",
+        help="marker side, e.g. 5cm (a bare number is metres; 0.05)",
+    )
     jitter.add_argument("--tilt-deg", type=float, default=10.0, metavar="DEG", help="view angle off the normal (10)")
     jitter.add_argument("--sensor-noise", type=float, default=2.0, metavar="GREY", help="noise sigma, grey levels (2)")
     jitter.add_argument("--blur", type=float, default=0.6, metavar="PX", help="optical blur sigma, px (0.6)")
@@ -203,7 +219,7 @@ def jitter_setup(args: argparse.Namespace, defaults: Defaults, camera: CameraMod
     frames = defaults.frames if args.frames is None else args.frames
     in_range("--frames", frames, why=f"the first {SETTLE_FRAMES} are the filter's settling time")
     text = defaults.distances if args.distances is None else args.distances
-    distances = sorted(set(_float_list(text, "--distances")))
+    distances = sorted(set(_float_list(text, "--distances", lengths=True)))
     in_range("--marker-m", args.marker_m)
     check(0.0 <= args.tilt_deg < 80.0, f"--tilt-deg: must be in [0, 80), got {args.tilt_deg:g}")
     in_range("--sensor-noise", args.sensor_noise)
