@@ -496,11 +496,11 @@ def _begins_as_json(path: Path) -> bool:
     if path.suffix.lower() == ".gz":
         return False
     try:
-        with open(path, "rb") as file:  # (a FIFO or device is refused before: only asked of a regular file)
-            if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
-                return False
+        if not stat.S_ISREG(path.stat().st_mode):  # (opening a FIFO would wait for a writer: never opened here)
+            return False
+        with open(path, "rb") as file:
             head = file.read(4096)
-    except OSError:
+    except (OSError, ValueError):
         return False
     return head.removeprefix(b"\xef\xbb\xbf").lstrip().startswith(b"{")
 
