@@ -1,17 +1,25 @@
 """Camera intrinsics: the pinhole matrix K, lens distortion and the image size they belong to.
 
-Files are OpenCV FileStorage YAML with the keys OpenCV's calibration sample writes:
+Files are OpenCV FileStorage YAML (or XML, JSON) with the keys OpenCV's calibration sample writes:
 ``camera_matrix`` (3x3), ``distortion_coefficients`` (1xN, N in 4, 5, 8, 12, 14),
 ``image_width``, ``image_height``. ROS ``camera_info`` YAML (``camera_calibration``'s output) has the
 same keys with ``rows``/``cols``/``data`` maps in place of ``!!opencv-matrix``; it is read too, for the
-distortion models OpenCV's pinhole model is (``plumb_bob``, ``rational_polynomial``).
+distortion models OpenCV's pinhole model is (``plumb_bob``, ``rational_polynomial``). PhotonVision's
+calibration JSON (its calibration page's export: ``resolution`` {width, height}, ``cameraIntrinsics`` and
+``distCoeffs`` as {rows, cols, type, data}; before 2024 the distortion was named ``cameraExtrinsics``) is
+read for its OpenCV lens model (``lensmodel`` LENSMODEL_OPENCV, not fisheye), as is a PhotonVision camera
+settings file holding one such calibration (``calibrations``).
+
+Without any file, :meth:`CameraModel.assumed` is the pinhole a focal length (or a field of view) gives.
 """
 
 from __future__ import annotations
 
 import gzip
 import io
+import json
 import logging
+import math
 import os
 import re
 import stat
@@ -23,7 +31,7 @@ import numpy as np
 
 from .errors import CameraError, OutputError, printable
 
-__all__ = ["MAX_FILE_BYTES", "CameraModel", "input_file_problem"]
+__all__ = ["FORMATS_READ", "MAX_FILE_BYTES", "CameraModel", "input_file_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +49,16 @@ _ONE_CHANNEL_DT = re.compile(r"1?[ucwsifdh]")  # OpenCV's element types (uchar .
 # Input files (camera, config, layout) are small: a larger one is refused before it is read (a 2 GiB
 # sparse file took a minute and gigabytes of memory to be read whole and then refused)
 MAX_FILE_BYTES = 16 * 2**20
+# ... except a PhotonVision calibration JSON: its board observations (older versions inline each snapshot as a
+# base64 image) can make it larger; JSON is parsed by Python's json, not OpenCV
+MAX_JSON_BYTES = 128 * 2**20
+
+# what a camera file may be, for the error that finds none of them
+FORMATS_READ = (
+    "formats read: OpenCV FileStorage YAML, XML or JSON as `ar-anchor calibrate` writes; ROS camera_info YAML; "
+    "PhotonVision calibration JSON"
+)
+_PHOTONVISION_LENS = "LENSMODEL_OPENCV"  # PhotonVision's OpenCV model; its mrcal stereographic ones are not
 
 # A camera matrix that cannot be a real camera's is refused, one that is odd is used with a warning:
 _FOCAL_RANGE = (0.01, 1000.0)  # fx, fy in image sides (max(width, height)): 179 deg to 0.06 deg of view
@@ -115,6 +133,16 @@ def filestorage_nesting_problem(data: bytes, path: Path) -> str | None:
     return None
 
 
+def focal_from_hfov(width: int, hfov_deg: float) -> float:
+    """The focal length (pixels) of a pinhole whose ``width``-pixel image spans ``hfov_deg`` degrees across."""
+    return (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+
+
+def hfov_from_focal(width: int, focal_px: float) -> float:
+    """The horizontal field of view (degrees) of a pinhole of focal length ``focal_px`` (pixels), ``width`` wide."""
+    return math.degrees(2.0 * math.atan2(width / 2.0, focal_px))
+
+
 @dataclass(frozen=True)
 class CameraModel:
     """Calibrated camera.
@@ -168,15 +196,37 @@ class CameraModel:
         return cls(matrix, np.zeros(0), width, height)
 
     @classmethod
+    def assumed(
+        cls, width: int, height: int, *, focal_px: float | None = None, hfov_deg: float | None = None
+    ) -> CameraModel:
+        """The pinhole a camera without a calibration is taken for: principal point at the image centre, no
+        distortion, fx = fy = ``focal_px``, or ``(width / 2) / tan(hfov_deg / 2)`` from the horizontal field of
+        view ``hfov_deg`` (degrees) of a ``width`` x ``height`` image; exactly one of the two is given."""
+        if (focal_px is None) == (hfov_deg is None):
+            raise ValueError("give exactly one of focal_px and hfov_deg")
+        if focal_px is None:
+            focal_px = focal_from_hfov(width, hfov_deg)
+        return cls.from_fov(width, height, float(focal_px))
+
+    @classmethod
     def default_synthetic(cls) -> CameraModel:
         """The camera of ``configs/camera_synthetic.yml``: 1280x720, fx = fy = 1000 px, no distortion."""
         return cls.from_fov(1280, 720, 1000.0)
 
     @classmethod
     def from_yaml(cls, path: str | os.PathLike[str]) -> CameraModel:
-        """Read an OpenCV FileStorage YAML camera file; raise :class:`CameraError` naming the file."""
+        """Read a camera file (OpenCV FileStorage YAML, XML or JSON; ROS camera_info YAML; PhotonVision calibration
+        JSON); raise :class:`CameraError` naming the file."""
         path = Path(path)
-        _check_file_bytes(path)
+        data = _check_file_bytes(path)
+        document = _photonvision_document(data, path)
+        if document is not None:
+            return cls._from_photonvision(document, path)
+        if len(data) > MAX_FILE_BYTES:  # (a larger JSON file was let through to be read as PhotonVision's)
+            raise CameraError(
+                f"camera file {printable(path)}: is {len(data) / 2**20:.0f} MiB, too large to be one "
+                f"(at most {MAX_FILE_BYTES // 2**20} MiB); not read"
+            )
         try:
             storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         except (cv2.error, SystemError) as err:  # OpenCV 5's binding wraps parse errors in SystemError
@@ -185,9 +235,15 @@ class CameraModel:
             ) from None
         try:
             if not storage.isOpened():
-                raise CameraError(f"camera file {printable(path)}: cannot be parsed as OpenCV FileStorage")
+                raise CameraError(
+                    f"camera file {printable(path)}: cannot be parsed as OpenCV FileStorage ({FORMATS_READ})"
+                )
             if not storage.root().isMap():
                 raise CameraError(f"camera file {printable(path)}: expected key: value pairs at the top level")
+            if storage.getNode("camera_matrix").empty():
+                raise CameraError(
+                    f"camera file {printable(path)}: missing 'camera_matrix', not a camera file ({FORMATS_READ})"
+                )
             matrix = _read_mat(storage, "camera_matrix", path, required=True)
             dist = _read_mat(storage, "distortion_coefficients", path, required=False)
             width = _read_int(storage, "image_width", path)
@@ -213,6 +269,37 @@ class CameraModel:
             camera.check_plausible()
         except CameraError as err:
             raise CameraError(f"camera file {printable(path)}: {err}") from err
+        return camera
+
+    @classmethod
+    def _from_photonvision(cls, document: dict, path: Path) -> CameraModel:
+        """The camera of a PhotonVision calibration (``document``, parsed from ``path``); :class:`CameraError`
+        naming the file and the field at fault."""
+        where = f"camera file {printable(path)} (PhotonVision calibration JSON)"
+        if "cameraIntrinsics" not in document:  # a camera's settings file: its calibrations, one per resolution
+            document = _one_photonvision_calibration(document.get("calibrations"), where)
+        lens = document.get("lensmodel")
+        if lens is not None and lens != _PHOTONVISION_LENS:
+            raise CameraError(
+                f"{where}: lensmodel {printable(lens)!r} is not supported (only {_PHOTONVISION_LENS}: OpenCV's pinhole "
+                "model; recalibrate in PhotonVision with the OpenCV model)"
+            )
+        if document.get("isFisheye") is True:
+            raise CameraError(
+                f"{where}: a fisheye calibration (isFisheye) is not supported: OpenCV's pinhole model only"
+            )
+        width, height = _photonvision_resolution(document.get("resolution"), where)
+        matrix = _photonvision_mat(document, "cameraIntrinsics", where)
+        dist_key = "distCoeffs" if "distCoeffs" in document else "cameraExtrinsics"  # (PhotonVision's older name)
+        dist = _photonvision_mat(document, dist_key, where) if dist_key in document else np.zeros(0)
+        if matrix.size == 9:
+            matrix = matrix.reshape(3, 3)
+        try:
+            camera = cls(matrix, dist.reshape(-1), width, height)
+            camera.check_plausible()
+        except CameraError as err:
+            raise CameraError(f"{where}: {err}") from err
+        log.info("%s: %dx%d, fx %.1f px", where, width, height, camera.camera_matrix[0, 0])
         return camera
 
     def to_yaml(self, path: str | os.PathLike[str], **extra: str | float | int) -> None:
@@ -376,13 +463,15 @@ def _distortion_fold(camera: CameraModel, rays: int = 72, samples: int = 800) ->
     return float(u[ray, previous]), float(v[ray, previous])
 
 
-def _check_file_bytes(path: Path) -> None:
-    """Refuse, before OpenCV parses it, a camera file that is not a small text file: missing, not a
-    regular file, too large (not read), empty, binary, an XML document with a DOCTYPE (entity
-    declarations: OpenCV's parser does not expand them, and a "billion laughs" file is a hostile one),
-    or nested deeper than OpenCV's recursive parsers survive."""
+def _check_file_bytes(path: Path) -> bytes:
+    """The bytes of a camera file, refused (before OpenCV parses it) when it is not a small text file:
+    missing, not a regular file, too large (not read; a file that begins as JSON may be larger, up to
+    ``MAX_JSON_BYTES``), empty, binary, an XML document with a DOCTYPE (entity declarations: OpenCV's
+    parser does not expand them, and a "billion laughs" file is a hostile one), or nested deeper than
+    OpenCV's recursive parsers survive."""
     where = f"camera file {printable(path)}"
-    problem = input_file_problem(path) or opencv_path_problem(path)
+    limit = MAX_JSON_BYTES if _begins_as_json(path) else MAX_FILE_BYTES
+    problem = input_file_problem(path, limit) or opencv_path_problem(path)
     if problem is not None:
         raise CameraError(f"{where}: {problem}")
     try:
@@ -392,12 +481,106 @@ def _check_file_bytes(path: Path) -> None:
     if not data.strip():
         raise CameraError(f"{where}: file is empty")
     if path.suffix.lower() != ".gz" and b"\0" in data:
-        raise CameraError(f"{where}: binary data, not a camera file (OpenCV YAML, XML or JSON text)")
+        raise CameraError(f"{where}: binary data, not a camera file (a text file; {FORMATS_READ})")
     if re.search(rb"<!(DOCTYPE|ENTITY)", data[:65536], re.IGNORECASE):
         raise CameraError(f"{where}: XML with a DOCTYPE or entity declarations is not a camera file OpenCV reads")
     problem = filestorage_nesting_problem(data, path)
     if problem is not None:
         raise CameraError(f"{where}: not a camera file ({problem})")
+    return data
+
+
+def _begins_as_json(path: Path) -> bool:
+    """Does the file at ``path`` begin with ``{`` (after a byte-order mark and white space)? False when it
+    cannot be read (the checks that follow say why)."""
+    if path.suffix.lower() == ".gz":
+        return False
+    try:
+        if not stat.S_ISREG(path.stat().st_mode):  # (opening a FIFO would wait for a writer: never opened here)
+            return False
+        with open(path, "rb") as file:
+            head = file.read(4096)
+    except (OSError, ValueError):
+        return False
+    return head.removeprefix(b"\xef\xbb\xbf").lstrip().startswith(b"{")
+
+
+def _photonvision_document(data: bytes, path: Path) -> dict | None:
+    """The parsed JSON object of a PhotonVision calibration (or camera settings) file, None for anything else
+    (OpenCV's FileStorage JSON included: FileStorage reads it)."""
+    if path.suffix.lower() == ".gz" or not data.removeprefix(b"\xef\xbb\xbf").lstrip().startswith(b"{"):
+        return None
+    try:
+        document = json.loads(data.decode("utf-8-sig"))
+    except (UnicodeDecodeError, ValueError, RecursionError):
+        return None  # (FileStorage then says what is wrong with it)
+    if not isinstance(document, dict):
+        return None
+    if "cameraIntrinsics" in document or ("calibrations" in document and "camera_matrix" not in document):
+        return document
+    return None
+
+
+def _one_photonvision_calibration(calibrations: object, where: str) -> dict:
+    """The one calibration of a PhotonVision camera settings file's ``calibrations``."""
+    if not isinstance(calibrations, list) or not all(isinstance(c, dict) for c in calibrations):
+        raise CameraError(f"{where}: 'calibrations' must be a list of calibrations")
+    if not calibrations:
+        raise CameraError(f"{where}: holds no calibration ('calibrations' is empty): calibrate in PhotonVision first")
+    if len(calibrations) > 1:
+        sizes = ", ".join(_resolution_text(c.get("resolution")) for c in calibrations)
+        raise CameraError(
+            f"{where}: holds {len(calibrations)} calibrations ({sizes}): export the one of the resolution you "
+            "track at from PhotonVision's calibration page and give that file"
+        )
+    return calibrations[0]
+
+
+def _resolution_text(resolution: object) -> str:
+    if isinstance(resolution, dict) and _is_number(resolution.get("width")) and _is_number(resolution.get("height")):
+        return f"{resolution['width']:g}x{resolution['height']:g}"
+    return "?"
+
+
+def _is_number(value: object) -> bool:
+    """A JSON number that is a finite float (an integer too large for one is not)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
+
+
+def _photonvision_resolution(resolution: object, where: str) -> tuple[int, int]:
+    """``resolution``: {"width": 1280.0, "height": 800.0} (OpenCV's Size, as PhotonVision writes it)."""
+    if not isinstance(resolution, dict):
+        raise CameraError(f'{where}: missing \'resolution\' ({{"width": W, "height": H}}, the calibrated image size)')
+    size = []
+    for key in ("width", "height"):
+        value = resolution.get(key)
+        if not _is_number(value) or value != int(value) or value <= 0:
+            raise CameraError(f"{where}: 'resolution' {key} must be a positive integer, got {printable(value)}")
+        size.append(int(value))
+    return size[0], size[1]
+
+
+def _photonvision_mat(document: dict, key: str, where: str) -> np.ndarray:
+    """A matrix as PhotonVision writes it: {"rows": R, "cols": C, "type": 6, "data": [R x C numbers]}."""
+    node = document.get(key)
+    if node is None:
+        raise CameraError(f"{where}: missing '{key}'")
+    if not isinstance(node, dict):
+        raise CameraError(f'{where}: \'{key}\' must be a matrix: {{"rows", "cols", "data"}}')
+    rows, cols, data = node.get("rows"), node.get("cols"), node.get("data")
+    counts = all(isinstance(n, int) and not isinstance(n, bool) and 0 < n <= 16 for n in (rows, cols))
+    if not (counts and isinstance(data, list)):
+        raise CameraError(f"{where}: '{key}' needs rows and cols (1 to 16) and a data list")
+    if not all(_is_number(value) for value in data):
+        raise CameraError(f"{where}: '{key}' data must hold finite numbers only")
+    if len(data) != rows * cols:
+        raise CameraError(f"{where}: '{key}' is {rows}x{cols} but has {len(data)} values")
+    return np.asarray(data, dtype=np.float64).reshape(rows, cols)
 
 
 def _parse_error(err: Exception) -> str:

@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, InputError, printable
-from .options import add_command, add_run_options, default_out, int_at_least
+from .options import add_command, add_run_options, assumed_camera_option, default_out, int_at_least
 from .replay import add_replay_options
 
 log = logging.getLogger(__name__)
@@ -478,17 +478,27 @@ def replay_options(args: argparse.Namespace) -> dict[str, Any]:
     return {key: value for key, value in vars(args).items() if key not in BATCH_ONLY}
 
 
-def check_cameras(recordings: Sequence[Recording], camera: Path | None) -> None:
-    """Every recording has a camera file: its own (manifest), ``--camera``, or ``camera.yml`` beside its source
-    (replay's default); :class:`InputError` naming the first that has none, before anything runs."""
+def check_cameras(recordings: Sequence[Recording], camera: Path | None, assumed: str | None = None) -> None:
+    """Every recording has a camera: its own file (manifest), ``--camera``, ``camera.yml`` beside its source
+    (replay's default) or the pinhole ``assumed`` (``--focal-px F`` or ``--hfov-deg A``, for the recordings with
+    no file of their own in the manifest: one warning for all); :class:`InputError` naming the first that has
+    none, before anything runs."""
     if camera is not None:
+        return
+    if assumed is not None:
+        log.warning(
+            "no calibration: %s taken for a pinhole (principal point at the image centre, no lens distortion) for "
+            "every recording without a camera file of its own (--manifest): distances are approximate",
+            assumed,
+        )
         return
     for recording in recordings:
         beside = Path(recording.source).parent / "camera.yml"
         if recording.camera is None and not beside.is_file():
             raise InputError(
                 f"{printable(recording.source)}: no camera file: give --camera FILE (or a camera column in "
-                f"--manifest), the calibration of the camera that took it (none at {printable(beside)})"
+                f"--manifest), the calibration of the camera that took it (none at {printable(beside)}); without "
+                "one, --focal-px F or --hfov-deg A gives approximate distances"
             )
 
 
@@ -572,6 +582,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     if args.video_out is not None:
         raise InputError("--video-out: batch writes one folder per recording; no single annotated video")
+    assumed_camera_option(args)  # (--focal-px with --hfov-deg or --camera: refused before anything)
     recordings = find_recordings(args.sources, args.manifest)
     for option in ("camera", "config"):
         path = getattr(args, option)
@@ -581,7 +592,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         from .batch_task import require_ray
 
         require_ray()
-    check_cameras(recordings, args.camera)
+    check_cameras(recordings, args.camera, assumed_camera_option(args))
     out = (args.out or default_out("batch")).absolute()  # (absolute paths: what a Ray node is given)
     check_out(out, recordings)
     created = not out.exists()
@@ -611,8 +622,8 @@ def _run_batch(args: argparse.Namespace, out: Path, recordings: list[Recording])
     for recording in recordings:
         recording = Recording(os.path.abspath(recording.source), recording.name, recording.camera, recording.config)
         task_options = dict(options)
-        if recording.camera is not None:
-            task_options["camera"] = recording.camera.absolute()
+        if recording.camera is not None:  # (the manifest's camera file, instead of --camera, --focal-px, --hfov-deg)
+            task_options.update(camera=recording.camera.absolute(), focal_px=None, hfov_deg=None)
         if recording.config is not None:
             task_options["config"] = recording.config.absolute()
         stamp = fingerprint(recording, task_options)

@@ -157,6 +157,7 @@ def replay_recording(task: BatchTask, *, single_thread: bool = False) -> dict[st
         args = build_parser().parse_args(["-q", "replay", task.recording.source])
         vars(args).update(task.options)
         args.out, args.quiet = task.out_dir, True
+        args.batch_warned = True  # (what every recording shares, e.g. an assumed camera, the batch said once)
         with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(io.StringIO()):
             code = int(args.func(args))
         row["status"], row["error"] = ("ok", None) if code == 0 else ("failed", _error_line(captured.getvalue(), code))

@@ -9,10 +9,13 @@ from typing import Any
 
 from .export import add_export_options, export_after_run, export_outputs
 from .options import (
+    add_assumed_camera_options,
     add_camera_options,
     add_command,
     add_run_options,
     add_tracker_options,
+    assumed_camera,
+    assumed_camera_option,
     camera_for_source,
     default_out,
     int_at_least,
@@ -38,7 +41,14 @@ def add_parser(commands: Any) -> None:
         default="/dev/video0",
         help="V4L2 device path or index, or 'synthetic' for the demo scene in real time (default /dev/video0)",
     )
-    live.add_argument("--camera", type=Path, default=None, help="camera YAML (required for a real camera)")
+    live.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        help="camera calibration (OpenCV YAML/XML/JSON, ROS camera_info YAML or PhotonVision JSON); a real camera "
+        "needs it, or --focal-px / --hfov-deg",
+    )
+    add_assumed_camera_options(live)
     add_tracker_options(live)
     live.add_argument("--width", type=int_at_least(1), default=None, help="requested frame width")
     live.add_argument("--height", type=int_at_least(1), default=None, help="requested frame height")
@@ -83,7 +93,9 @@ def _synthetic_camera_scene(args: argparse.Namespace, config: Any) -> Any:
     from ..sources.open import live_demo_scene
 
     camera = CameraModel.from_yaml(args.camera) if args.camera else CameraModel.default_synthetic()
-    if args.width or args.height:
+    if assumed_camera_option(args) is not None:  # the scene seen through that pinhole: exact, nothing to warn
+        camera = assumed_camera(args, (args.width or camera.width, args.height or camera.height), warn=False)
+    elif args.width or args.height:
         size = (args.width or camera.width, args.height or camera.height)
         try:
             camera = camera.scaled_to(*size, warn=False)  # the size asked for: no warning
@@ -119,6 +131,7 @@ def cmd_live(args: argparse.Namespace) -> int:
 
     if args.export_images and not args.record:
         raise InputError("--export-images: a live run's frames are kept only with --record (raw.mkv)")
+    assumed = assumed_camera_option(args)  # (--focal-px with --hfov-deg or --camera: refused before the device opens)
     config = load_tracker_config(args, demo=args.device == SYNTHETIC)
     scene = _synthetic_camera_scene(args, config) if args.device == SYNTHETIC else None
     device = DeviceSettings(
@@ -136,10 +149,17 @@ def cmd_live(args: argparse.Namespace) -> int:
             raise
         raise SourceError(f"--device {err}") from None
     try:
-        if args.camera is None and source.camera is None:
-            raise CameraError("--camera FILE is required for a real camera (its calibration: see the README)")
-        camera_file = CameraModel.from_yaml(args.camera) if args.camera else source.camera
-        camera = camera_for_source(camera_file, source.resolution, f"--camera {args.camera}")
+        if source.camera is None and assumed is not None:
+            camera, camera_from = assumed_camera(args, source.resolution), assumed
+        else:
+            if args.camera is None and source.camera is None:
+                raise CameraError(
+                    "--camera FILE is required for a real camera (its calibration: see the README); without one, "
+                    "--focal-px F or --hfov-deg A gives approximate distances"
+                )
+            camera_file = CameraModel.from_yaml(args.camera) if args.camera else source.camera
+            camera = camera_for_source(camera_file, source.resolution, f"--camera {args.camera}")
+            camera_from = f"--camera {args.camera}" if args.camera else (assumed or "the synthetic scene's camera")
         out_dir = args.out or default_out("live")
         options = run_options(
             args,
@@ -150,7 +170,7 @@ def cmd_live(args: argparse.Namespace) -> int:
                 "command": "live",
                 "device": str(args.device),
                 "granted": dict(source.grabber.granted),
-                "camera": camera_summary(camera),
+                "camera": {"from": camera_from, **camera_summary(camera)},
             },
             output_queue=3,  # live: a late logger skips frames rather than holding many (6 MB each at 1080p)
         )

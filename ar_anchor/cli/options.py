@@ -262,6 +262,112 @@ def add_tracker_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def a_number(text: str) -> float:
+    """An argparse type: any number (its range is checked where the value is used, in one line naming the option)."""
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+def add_assumed_camera_options(parser: argparse.ArgumentParser) -> None:
+    """--focal-px and --hfov-deg: a camera without a calibration file, taken for an ideal pinhole."""
+    parser.add_argument(
+        "--focal-px",
+        type=a_number,
+        default=None,
+        metavar="F",
+        help="no calibration file: take the camera for a pinhole of focal length F pixels (fx = fy = F, principal "
+        "point at the image centre, no lens distortion), at the source's resolution; distances are approximate",
+    )
+    parser.add_argument(
+        "--hfov-deg",
+        type=a_number,
+        default=None,
+        metavar="A",
+        help="no calibration file: as --focal-px, the focal length from the horizontal field of view, A degrees "
+        "across the image: F = (width / 2) / tan(A / 2)",
+    )
+
+
+# An assumed focal length whose pinhole would see more than this across is refused: no lens a pinhole without
+# distortion describes, and the likely slip is a focal length in millimetres (4 mm: a view 179 deg wide)
+MAX_ASSUMED_HFOV_DEG = 150.0
+# Wider than this, an assumed pinhole is warned about: a wide lens's distortion is large at the edges
+WIDE_ASSUMED_HFOV_DEG = 100.0
+
+
+def assumed_camera_option(args: argparse.Namespace) -> str | None:
+    """``--focal-px F`` or ``--hfov-deg A`` as given (None when neither is); :class:`~ar_anchor.errors.InputError`
+    when both are, or either with ``--camera``."""
+    from ..errors import InputError
+
+    focal, hfov = getattr(args, "focal_px", None), getattr(args, "hfov_deg", None)
+    if focal is not None and hfov is not None:
+        raise InputError("--focal-px and --hfov-deg: give one of them (both set the focal length)")
+    if focal is not None and not (math.isfinite(focal) and focal > 0):
+        raise InputError(f"--focal-px {focal:g}: must be a focal length in pixels, > 0")
+    if hfov is not None and not (math.isfinite(hfov) and 1.0 < hfov < 179.0):
+        raise InputError(
+            f"--hfov-deg {hfov:g}: must be a horizontal field of view between 1 and 179 degrees (a pinhole sees "
+            "less than 180)"
+        )
+    option = f"--focal-px {focal:g}" if focal is not None else f"--hfov-deg {hfov:g}" if hfov is not None else None
+    if option is not None and getattr(args, "camera", None) is not None:
+        raise InputError(
+            f"{option.split()[0]} with --camera: give one (--camera is the camera's calibration; "
+            f"{option.split()[0]} an assumed focal length for a camera without one)"
+        )
+    return option
+
+
+def assumed_camera(args: argparse.Namespace, resolution: tuple[int, int], *, warn: bool = True) -> Any:
+    """The pinhole ``--focal-px`` or ``--hfov-deg`` describe at the source's ``resolution`` (width, height), with
+    one warning line that distances are approximate (``warn``; else an info line); None when neither is given.
+    A focal length no camera of that image width has is a :class:`~ar_anchor.errors.CameraError` naming the
+    option, with a hint."""
+    from ..camera import CameraModel, hfov_from_focal
+    from ..errors import CameraError
+
+    option = assumed_camera_option(args)
+    if option is None:
+        return None
+    width, height = resolution
+    focal, hfov = getattr(args, "focal_px", None), getattr(args, "hfov_deg", None)
+    if focal is not None:
+        hfov = hfov_from_focal(width, focal)
+        seen = f"{option}: a focal length of {focal:g} px would see {hfov:.3g} deg across these {width}x{height} images"
+        if hfov > MAX_ASSUMED_HFOV_DEG:
+            raise CameraError(
+                f"{seen}: did you give millimetres? In pixels it is the focal length in mm x the image width in px / "
+                "the sensor width in mm; or give the field of view, --hfov-deg"
+            )
+        if hfov < 1.0:
+            sixty = width / 2 / math.tan(math.radians(30.0))
+            raise CameraError(f"{seen} (less than 1 deg): a typo? (a 60 deg view is --focal-px {sixty:.0f})")
+    camera = CameraModel.assumed(width, height, focal_px=focal, hfov_deg=None if focal is not None else hfov)
+    try:
+        camera.check_plausible()
+    except CameraError as err:
+        raise CameraError(f"{option}: {err}") from None
+    wide = (
+        f"; a view {hfov:.0f} deg wide: a wide lens's distortion, not modelled, bends the edges"
+        if hfov > WIDE_ASSUMED_HFOV_DEG
+        else ""
+    )
+    logging.getLogger("ar_anchor.cli").log(
+        logging.WARNING if warn else logging.INFO,
+        "no calibration: %s taken for a pinhole (fx = fy = %.1f px at %dx%d, principal point at the image "
+        "centre, no lens distortion): distances are approximate%s",
+        option,
+        camera.camera_matrix[0, 0],
+        width,
+        height,
+        wide,
+    )
+    return camera
+
+
 def default_out(name: str) -> Path:
     """``recordings/<name>-<YYYYmmdd-HHMMSS>``: a run's output directory when --out is not given."""
     return Path("recordings") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -325,4 +431,5 @@ def camera_for_source(camera: Any, resolution: tuple[int, int], option: str, *, 
         return camera.scaled_to(*resolution)
     except CameraError as err:
         where = f" (the size of {printable(frames_from)})" if frames_from is not None else ""
-        raise CameraError(f"{option}: {err}{where}") from None
+        hint = "; a camera without its calibration: --focal-px F or --hfov-deg A instead, for approximate distances"
+        raise CameraError(f"{option}: {err}{where}{hint}") from None

@@ -11,10 +11,13 @@ from typing import TYPE_CHECKING, Any
 from ..errors import EXIT_FAILURE, printable
 from .export import add_export_options, export_after_run, export_outputs
 from .options import (
+    add_assumed_camera_options,
     add_camera_options,
     add_command,
     add_run_options,
     add_tracker_options,
+    assumed_camera,
+    assumed_camera_option,
     camera_for_source,
     default_out,
     load_tracker_config,
@@ -65,8 +68,10 @@ def add_replay_options(parser: argparse.ArgumentParser) -> None:
         "--camera",
         type=Path,
         default=None,
-        help="camera YAML (default: camera.yml beside SOURCE, as `live --record` writes it)",
+        help="camera calibration: OpenCV YAML/XML/JSON (as `calibrate` writes), ROS camera_info YAML or PhotonVision "
+        "JSON (default: camera.yml beside SOURCE, as `live --record` writes it; none: --focal-px or --hfov-deg)",
     )
+    add_assumed_camera_options(parser)
     add_tracker_options(parser)
     parser.add_argument(
         "--fps",
@@ -88,19 +93,42 @@ def add_replay_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _replay_camera(args: argparse.Namespace) -> Path:
-    """``--camera``, or the ``camera.yml`` beside the source (as ``live --record`` leaves it)."""
+def _replay_camera(args: argparse.Namespace) -> Path | None:
+    """``--camera``, or the ``camera.yml`` beside the source (as ``live --record`` leaves it); None for
+    ``--focal-px`` or ``--hfov-deg`` (an assumed camera, built at the source's resolution)."""
     from ..errors import CameraError
 
     if args.camera is not None:
         return args.camera
+    if assumed_camera_option(args) is not None:
+        return None
     beside = Path(args.source).parent / "camera.yml"
     if not beside.is_file():
         raise CameraError(
-            f"--camera FILE is required: the calibration of the camera that took {args.source} (none found at {beside})"
+            f"--camera FILE is required: the calibration of the camera that took {printable(args.source)} (none found "
+            f"at {printable(beside)}); without one, --focal-px F or --hfov-deg A gives approximate distances"
         )
     log.warning("using %s, found beside the source", beside)
     return beside
+
+
+def replay_camera(args: argparse.Namespace, source: Any) -> tuple[Any, Path | None, str]:
+    """The camera a replay of ``source`` tracks with, at the source's resolution: the calibration file (and its
+    path) or the assumed pinhole (path None), and how it was given (summary.json's ``camera`` ``from``)."""
+    from ..camera import CameraModel
+
+    camera_path = _replay_camera(args)
+    if camera_path is None:
+        warn = not getattr(args, "batch_warned", False)  # (batch says it once for all its recordings)
+        return assumed_camera(args, source.resolution, warn=warn), None, assumed_camera_option(args)
+    camera = camera_for_source(
+        CameraModel.from_yaml(camera_path),
+        source.resolution,
+        f"--camera {camera_path}",
+        frames_from=getattr(source, "resolution_from", None),
+    )
+    given = f"--camera {camera_path}" if args.camera is not None else f"{camera_path} (beside the source)"
+    return camera, camera_path, given
 
 
 def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
@@ -155,23 +183,17 @@ def write_frames_csv(path: Path, source: Any) -> None:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """``ar-anchor replay SOURCE``: track a video file or images and record the run; the exit code."""
-    from ..camera import CameraModel
     from ..run.loop import OfflineReplay, run_session
     from ..run.paths import FRAMES_CSV, claim_out_dir, config_inputs, run_output_paths, source_inputs
     from ..sources import open_source
     from ..tools.export.run import camera_summary, clear_previous_exports
     from ..track.tracker import Tracker
 
+    assumed_camera_option(args)  # (both --focal-px and --hfov-deg, or one with --camera: refused before anything)
     config = load_tracker_config(args)
     max_pixels = None if args.max_megapixels is None else max(1, int(args.max_megapixels * 1e6))
     with open_source(args.source, live=False, fps=args.fps, max_pixels=max_pixels) as source:
-        camera_path = _replay_camera(args)
-        camera = camera_for_source(
-            CameraModel.from_yaml(camera_path),
-            source.resolution,
-            f"--camera {camera_path}",
-            frames_from=getattr(source, "resolution_from", None),
-        )
+        camera, camera_path, camera_from = replay_camera(args, source)
         stills = stills_assumed(args, source.info)
         if stills:  # each image alone: exactly the per-frame pipeline, nothing carried from one to the next
             config = config.with_overrides(filter_enabled=False)
@@ -179,7 +201,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
             args,
             f"replay {args.source}",
             record_fps=source.info.fps or 30.0,
-            extra_summary={"command": "replay", "source": str(args.source), "camera": camera_summary(camera)},
+            extra_summary={
+                "command": "replay",
+                "source": str(args.source),
+                "camera": {"from": camera_from, **camera_summary(camera)},
+            },
         )
         out_dir = args.out or default_out("replay")
         inputs = source_inputs(source) + config_inputs(config, args.config, camera_path)
