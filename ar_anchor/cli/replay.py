@@ -18,12 +18,14 @@ from .options import (
     camera_for_source,
     default_out,
     load_tracker_config,
+    output_path,
     positive_float,
     run_options,
 )
 from .report import Progress, finish
 
 if TYPE_CHECKING:
+    from ..run.stills import StillsPlan
     from ..sources.base import SourceInfo
 
 log = logging.getLogger(__name__)
@@ -54,6 +56,14 @@ def add_parser(commands: Any) -> None:
         "before it is decoded): a larger image is skipped, a larger video refused",
     )
     add_run_options(replay, "replay")
+    replay.add_argument(
+        "--images-out",
+        type=output_path,
+        default=None,
+        metavar="DIR",
+        help="an image folder or glob: also write each image with its overlays drawn (as --video-out draws "
+        "them) to DIR, under the same file name and format; DIR may not be the images' own folder",
+    )
     add_camera_options(replay)
     add_export_options(replay, "SOURCE decoded again")
     replay.set_defaults(func=cmd_replay)
@@ -101,6 +111,22 @@ def _replay_camera(args: argparse.Namespace) -> Path:
         )
     log.warning("using %s, found beside the source", beside)
     return beside
+
+
+def _images_out(args: argparse.Namespace, source: Any) -> StillsPlan | None:
+    """``--images-out DIR`` checked against the source (an image folder or glob only: a video's frames have no
+    file names to keep) and the files in DIR (:func:`~ar_anchor.run.stills.plan_images_out`); None without it."""
+    from ..errors import InputError
+    from ..run.stills import plan_images_out
+
+    if args.images_out is None:
+        return None
+    if not hasattr(source, "files"):
+        raise InputError(
+            f"--images-out {printable(args.images_out)}: {printable(args.source)} is a video; --images-out writes "
+            "one annotated image per image of a folder or glob (an annotated video: --video-out FILE.mp4)"
+        )
+    return plan_images_out(args.images_out, source.files)
 
 
 def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
@@ -172,6 +198,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
             f"--camera {camera_path}",
             frames_from=getattr(source, "resolution_from", None),
         )
+        images_out = _images_out(args, source)
         stills = stills_assumed(args, source.info)
         if stills:  # each image alone: exactly the per-frame pipeline, nothing carried from one to the next
             config = config.with_overrides(filter_enabled=False)
@@ -179,13 +206,17 @@ def cmd_replay(args: argparse.Namespace) -> int:
             args,
             f"replay {args.source}",
             record_fps=source.info.fps or 30.0,
+            images_out=images_out,
             extra_summary={"command": "replay", "source": str(args.source), "camera": camera_summary(camera)},
         )
         out_dir = args.out or default_out("replay")
         inputs = source_inputs(source) + config_inputs(config, args.config, camera_path)
         frames_csv = [("--out", out_dir / FRAMES_CSV)] if hasattr(source, "files") else []
+        stills_named = (
+            [] if images_out is None else [("--images-out", images_out.folder / n) for n in images_out.names.values()]
+        )
         outputs_named = run_output_paths(
-            out_dir, video_out=args.video_out, extra=[*export_outputs(args, out_dir), *frames_csv]
+            out_dir, video_out=args.video_out, extra=[*export_outputs(args, out_dir), *frames_csv, *stills_named]
         )
         offline = None
         if not args.causal and config.filter.enabled:  # (--no-filter: nothing to decide with hindsight)

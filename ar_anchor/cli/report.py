@@ -79,6 +79,9 @@ def finish(args: argparse.Namespace, outputs: Any) -> int:
     video = outputs.summary.get("video_out")
     if video:
         print(f"annotated video: {printable(video['path'])} ({video['frames']} frames)")
+    images = outputs.summary.get("images_out")
+    if images:
+        print(f"annotated images: {printable(images['folder'])}/ ({images['images']} images)")
     status = outputs.summary.get("status")
     return EXIT_OK if status == "completed" else EXIT_FAILURE
 
