@@ -10,18 +10,49 @@ from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, printable
 
+PLAIN_EVERY_S = 5.0  # a piped run's progress: a plain line this often (seconds)
+
+
+class PlainProgress:
+    """Progress where stderr is no terminal (piped, redirected to a log): a plain line every
+    :data:`PLAIN_EVERY_S` seconds (``replay: 120 of 450 frames, 24.1 fps, 5.0 s``), none for a run shorter."""
+
+    def __init__(self, desc: str) -> None:
+        self.desc = desc
+        self.start = time.monotonic()
+        self.last = self.start
+
+    def __call__(self, done: int, total: int | None, _result: object = None) -> None:
+        now = time.monotonic()
+        if now - self.last < PLAIN_EVERY_S:
+            return
+        self.last = now
+        elapsed = now - self.start
+        frames = f"{done} of {total} frames" if total is not None else f"{done} frames"
+        try:
+            sys.stderr.write(f"{self.desc}: {frames}, {done / max(elapsed, 1e-9):.1f} fps, {elapsed:.1f} s\n")
+            sys.stderr.flush()
+        except (OSError, ValueError):  # a reader gone away: the run goes on
+            pass
+
 
 class Progress:
-    """A tqdm bar on a terminal (frames, fps, ETA), nothing otherwise."""
+    """A tqdm bar on a terminal (frames, fps, ETA); elsewhere a plain line every few seconds
+    (:class:`PlainProgress`); nothing when not ``enabled`` (-q)."""
 
     def __init__(self, enabled: bool, desc: str) -> None:
         self.bar = None
+        self.plain: PlainProgress | None = None
         if enabled and sys.stderr.isatty():
             from tqdm import tqdm
 
             self.bar = tqdm(desc=desc, unit="frame", leave=False, dynamic_ncols=True)
+        elif enabled:
+            self.plain = PlainProgress(desc)
 
     def __call__(self, done: int, total: int | None, _result: object = None) -> None:
+        if self.plain is not None:
+            self.plain(done, total)
         if self.bar is None:
             return
         if total is not None and self.bar.total != total:
@@ -34,10 +65,12 @@ class Progress:
 
 
 class LiveStatus:
-    """One status line for live runs, rewritten about twice a second on a terminal."""
+    """One status line for live runs, rewritten about twice a second on a terminal (piped: a plain line every
+    few seconds)."""
 
     def __init__(self, enabled: bool, stats: Any) -> None:
         self.enabled = enabled and sys.stderr.isatty()
+        self.plain = PlainProgress("live") if enabled and not self.enabled else None  # piped: a line now and then
         self.stats = stats
         self.start = time.monotonic()
         self.last = 0.0
@@ -50,6 +83,8 @@ class LiveStatus:
                 if done > 1
                 else sum(result.latency_ms.values())
             )
+        if self.plain is not None:
+            self.plain(done, None)
         now = time.monotonic()
         if not self.enabled or now - self.last < 0.5:
             return

@@ -150,3 +150,26 @@ def test_a_demo_explains_its_ground_truth_columns(tmp_path: Path) -> None:
     assert_clean_exit(result, {0})
     assert "rot med/p95 deg = rotation error to the ground truth, degrees" in result.stdout
     assert "trans med/p95 % = position error, % of the true distance" in result.stdout
+
+
+def test_a_piped_run_prints_a_plain_progress_line_now_and_then(folders: Path, tmp_path: Path, monkeypatch) -> None:
+    from ar_anchor.cli import report
+
+    # given stderr that is no terminal (captured) and a line due at every frame
+    monkeypatch.setattr(report, "PLAIN_EVERY_S", 0.0)
+    result, _ = _replay(folders, folders / "turns", tmp_path / "piped", "--sequence")
+    # then each pass says how far it got, in plain lines (no bar, no carriage return)
+    lines = [line for line in result.stderr.splitlines() if " fps, " in line]
+    assert "replay 1/3 track: 3 of 3 frames" in "\n".join(lines), result.stderr
+    assert any(line.startswith("replay 3/3 write: 1 of 3 frames") for line in lines), result.stderr
+    assert "\r" not in result.stderr
+    quiet, _ = _replay(folders, folders / "turns", tmp_path / "quiet", "--sequence", "-q")
+    assert " fps, " not in quiet.stderr
+
+
+def test_a_piped_run_shorter_than_the_interval_prints_no_progress(folders: Path, tmp_path: Path) -> None:
+    from ar_anchor.cli import report
+
+    assert report.PLAIN_EVERY_S >= 2.0  # a line every few seconds, not every frame
+    result, _ = _replay(folders, folders / "turns" / "turn_0.png", tmp_path / "short")
+    assert " fps, " not in result.stderr
