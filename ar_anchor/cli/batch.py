@@ -369,6 +369,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("status", "string"),
     ("error", "string"),
     ("frames", "int64"),
+    ("frames_with_markers", "int64"),
     ("fps", "float64"),
     ("detection_rate", "float64"),
     ("tracked_fraction", "float64"),
@@ -676,6 +677,7 @@ def _replay_all(
     ok = sum(row["status"] == "ok" for row in rows)
     wall = time.monotonic() - started
     if not args.quiet:
+        print(format_runs(rows, out))
         engine = "ray" if ray_address is not None else f"{min(jobs, max(1, len(tasks)))} local process(es)"
         print(
             f"{len(rows)} recording(s): {ok} replayed, {tally.skipped} skipped (already done), {len(failed)} failed"
@@ -691,6 +693,33 @@ def _replay_all(
               file=sys.stderr)  # fmt: skip
         return EXIT_FAILURE
     return EXIT_OK
+
+
+def format_runs(rows: list[dict[str, Any]], out: Path) -> str:
+    """The batch's table on the console: one line per recording (name, frames, status, frames with markers,
+    speed, wall time, output folder), its columns explained below it."""
+
+    def cell(value: Any, form: str) -> str:
+        return "-" if value is None else format(value, form)
+
+    width = max([len("recording"), *(len(printable(row["name"])) for row in rows)])
+    header = f"{'recording':<{width}} {'frames':>7} {'status':<11} {'markers in':<12} {'fps':>7} {'wall s':>7}  output"
+    lines = [header, "-" * len(header)]
+    for row in rows:
+        frames, markers = row.get("frames"), row.get("frames_with_markers")
+        found = "-" if frames is None or markers is None else f"{markers} of {frames}"
+        folder = Path(row.get("out") or out / row["name"])
+        here = Path.cwd()
+        shown = f"{printable(folder.relative_to(here) if _inside(folder, here) else folder)}/"
+        lines.append(
+            f"{printable(row['name']):<{width}} {cell(frames, 'd'):>7} {printable(row['status']):<11} {found:<12} "
+            f"{cell(row.get('fps'), '.1f'):>7} {cell(row.get('wall_s'), '.1f'):>7}  {shown}"
+        )
+    lines += [
+        "markers in: frames with markers found, of the frames replayed; fps: frames tracked per second;",
+        "  wall s: the replay's time, start to end (skipped: its earlier run's)",
+    ]
+    return "\n".join(lines)
 
 
 def usable_cores() -> int:
