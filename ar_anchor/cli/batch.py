@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, InputError, printable
-from .options import add_command, add_run_options, default_out, int_at_least
+from .options import add_command, add_run_options, default_out, int_at_least, output_path
 from .replay import add_replay_options
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,7 @@ MANIFEST_COLUMNS = ("source", "camera", "config", "name")
 # the options of the batch command itself (everything else is handed to each replay as it is)
 BATCH_ONLY = frozenset(
     {"sources", "manifest", "jobs", "ray", "force", "rigid_sheet", "out", "quiet", "verbose", "command", "func"}
+    | {"images_out"}  # (given to the image recordings only, each its own folder: see _run_batch)
 )
 RUNS_FILE, RUNS_CSV = "runs.parquet", "runs.csv"
 STAMP_FILE = "batch.json"
@@ -84,6 +85,14 @@ def add_parser(commands: Any) -> None:
     for action in batch._actions:  # one annotated video for many recordings: not offered
         if "--video-out" in action.option_strings:
             action.help = argparse.SUPPRESS
+    batch.add_argument(
+        "--images-out",
+        type=output_path,
+        default=None,
+        metavar="DIR",
+        help="recordings of images: also write each image with its overlays drawn to DIR/<name>/ (replay "
+        "--images-out; video recordings get none)",
+    )
     batch.add_argument(
         "--jobs",
         type=int_at_least(1),
@@ -616,6 +625,8 @@ def _run_batch(args: argparse.Namespace, out: Path, recordings: list[Recording])
             task_options["camera"] = recording.camera.absolute()
         if recording.config is not None:
             task_options["config"] = recording.config.absolute()
+        if args.images_out is not None and _image_folder(recording.source) is not None:
+            task_options["images_out"] = (args.images_out / recording.name).absolute()
         stamp = fingerprint(recording, task_options)
         out_dir = out / recording.name
         previous = None if args.force else previous_row(out_dir, stamp)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, OutputError, printable
-from .outputs import write_failure
+from .outputs import check_not_a_file, write_failure
 from .written import WrittenFiles, refuse_theirs
 
 __all__ = ["MANIFEST_COMMAND", "AnnotatedStillsWriter", "StillsPlan", "plan_images_out"]
@@ -53,6 +53,7 @@ def plan_images_out(folder: Path, files: Sequence[Path], option: str = "--images
 
     if folder.exists() and not folder.is_dir():
         raise InputError(f"{option} {printable(folder)}: is a file, not a folder (give the folder to write into)")
+    check_not_a_file(folder, option)  # (a file on the way: it can never be created)
     where = _resolved(folder)
     for file in files:
         if _resolved(Path(file)).parent == where:

@@ -67,3 +67,27 @@ def test_batch_prints_one_line_per_recording(tmp_path: Path) -> None:
     quiet = subprocess.run([*command[:3], "-q", *command[3:], "--force"], cwd=tmp_path, capture_output=True,
                            text=True, timeout=300, check=False)  # fmt: skip
     assert quiet.returncode == 1 and "markers in" not in quiet.stdout, describe(quiet)
+
+
+def test_batch_images_out_gives_each_image_recording_its_folder(tmp_path: Path) -> None:
+    # given two image folders and a video
+    seen = _folder(tmp_path, "seen", 2, 2)
+    partly = _folder(tmp_path, "partly", 2, 1)
+    clip = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (CAMERA.width, CAMERA.height))
+    for image in sorted(seen.iterdir()):
+        writer.write(cv2.imread(str(image)))
+    writer.release()
+    CAMERA.to_yaml(tmp_path / "cam.yml")
+    command = [sys.executable, "-m", "ar_anchor", "-q", "batch", str(seen), str(partly), str(clip),
+               "--camera", str(tmp_path / "cam.yml"), "--out", "out", "--images-out", "ann", "--jobs", "2"]  # fmt: skip
+    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False)
+    assert result.returncode == 0, describe(result)
+    # then each image recording has its annotated copies under DIR/<name>/, the video none
+    assert sorted(p.name for p in (tmp_path / "ann").iterdir()) == ["partly", "seen"]
+    for name in ("seen", "partly"):
+        copies = sorted(p.name for p in (tmp_path / "ann" / name).iterdir() if not p.name.startswith("."))
+        assert copies == ["f0.png", "f1.png"]
+        summary = json.loads((tmp_path / "out" / name / "summary.json").read_text())
+        assert summary["images_out"]["images"] == 2
+    assert "images_out" not in json.loads((tmp_path / "out" / "clip" / "summary.json").read_text())

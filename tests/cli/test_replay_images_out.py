@@ -155,3 +155,13 @@ def test_video_out_with_an_image_extension_suggests_images_out(photos: Path, tmp
     assert_clean_exit(result, {2})
     (line,) = error_lines(result.stderr)
     assert "--video-out" in line and "--images-out DIR" in line, line
+
+
+def test_a_folder_that_can_never_be_made_is_refused_before_the_run(photos: Path, tmp_path: Path) -> None:
+    (tmp_path / "a_file").write_text("x")
+    for folder in (tmp_path / "a_file", tmp_path / "a_file" / "ann"):
+        result = _replay(photos, photos / "shots", "--out", str(tmp_path / "run"), "--images-out", str(folder))
+        assert_clean_exit(result, {2})
+        (line,) = error_lines(result.stderr)
+        assert "--images-out" in line and "a file" in line, line
+        assert not (tmp_path / "run").exists()

@@ -173,3 +173,15 @@ def test_a_piped_run_shorter_than_the_interval_prints_no_progress(folders: Path,
     assert report.PLAIN_EVERY_S >= 2.0  # a line every few seconds, not every frame
     result, _ = _replay(folders, folders / "turns" / "turn_0.png", tmp_path / "short")
     assert " fps, " not in result.stderr
+
+
+def test_a_piped_live_run_prints_plain_progress_lines(tmp_path: Path, monkeypatch) -> None:
+    from ar_anchor.cli import report
+
+    monkeypatch.setattr(report, "PLAIN_EVERY_S", 0.0)
+    argv = ["live", "--device", "synthetic", "--width", "96", "--height", "54", "--max-frames", "3"]
+    result = run_main([*argv, "--out", str(tmp_path / "live")])
+    assert_clean_exit(result, {0})
+    lines = [line for line in result.stderr.splitlines() if line.startswith("live: ")]
+    assert lines and lines[-1].startswith("live: 3 frames, "), result.stderr
+    assert "\r" not in result.stderr
