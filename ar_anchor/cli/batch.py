@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, InputError, printable
-from .options import add_command, add_run_options, assumed_camera_option, default_out, int_at_least
+from .options import add_command, add_run_options, assumed_camera_option, default_out, int_at_least, output_path
 from .replay import add_replay_options
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,7 @@ MANIFEST_COLUMNS = ("source", "camera", "config", "name")
 # the options of the batch command itself (everything else is handed to each replay as it is)
 BATCH_ONLY = frozenset(
     {"sources", "manifest", "jobs", "ray", "force", "rigid_sheet", "out", "quiet", "verbose", "command", "func"}
+    | {"images_out"}  # (given to the image recordings only, each its own folder: see _run_batch)
 )
 RUNS_FILE, RUNS_CSV = "runs.parquet", "runs.csv"
 STAMP_FILE = "batch.json"
@@ -84,6 +85,14 @@ def add_parser(commands: Any) -> None:
     for action in batch._actions:  # one annotated video for many recordings: not offered
         if "--video-out" in action.option_strings:
             action.help = argparse.SUPPRESS
+    batch.add_argument(
+        "--images-out",
+        type=output_path,
+        default=None,
+        metavar="DIR",
+        help="recordings of images: also write each image with its overlays drawn to DIR/<name>/ (replay "
+        "--images-out; video recordings get none)",
+    )
     batch.add_argument(
         "--jobs",
         type=int_at_least(1),
@@ -369,6 +378,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("status", "string"),
     ("error", "string"),
     ("frames", "int64"),
+    ("frames_with_markers", "int64"),
     ("fps", "float64"),
     ("detection_rate", "float64"),
     ("tracked_fraction", "float64"),
@@ -626,6 +636,8 @@ def _run_batch(args: argparse.Namespace, out: Path, recordings: list[Recording])
             task_options.update(camera=recording.camera.absolute(), focal_px=None, hfov_deg=None)
         if recording.config is not None:
             task_options["config"] = recording.config.absolute()
+        if args.images_out is not None and _image_folder(recording.source) is not None:
+            task_options["images_out"] = (args.images_out / recording.name).absolute()
         stamp = fingerprint(recording, task_options)
         out_dir = out / recording.name
         previous = None if args.force else previous_row(out_dir, stamp)
@@ -687,6 +699,7 @@ def _replay_all(
     ok = sum(row["status"] == "ok" for row in rows)
     wall = time.monotonic() - started
     if not args.quiet:
+        print(format_runs(rows, out))
         engine = "ray" if ray_address is not None else f"{min(jobs, max(1, len(tasks)))} local process(es)"
         print(
             f"{len(rows)} recording(s): {ok} replayed, {tally.skipped} skipped (already done), {len(failed)} failed"
@@ -702,6 +715,33 @@ def _replay_all(
               file=sys.stderr)  # fmt: skip
         return EXIT_FAILURE
     return EXIT_OK
+
+
+def format_runs(rows: list[dict[str, Any]], out: Path) -> str:
+    """The batch's table on the console: one line per recording (name, frames, status, frames with markers,
+    speed, wall time, output folder), its columns explained below it."""
+
+    def cell(value: Any, form: str) -> str:
+        return "-" if value is None else format(value, form)
+
+    width = max([len("recording"), *(len(printable(row["name"])) for row in rows)])
+    header = f"{'recording':<{width}} {'frames':>7} {'status':<11} {'markers in':<12} {'fps':>7} {'wall s':>7}  output"
+    lines = [header, "-" * len(header)]
+    for row in rows:
+        frames, markers = row.get("frames"), row.get("frames_with_markers")
+        found = "-" if frames is None or markers is None else f"{markers} of {frames}"
+        folder = Path(row.get("out") or out / row["name"])
+        here = Path.cwd()
+        shown = f"{printable(folder.relative_to(here) if _inside(folder, here) else folder)}/"
+        lines.append(
+            f"{printable(row['name']):<{width}} {cell(frames, 'd'):>7} {printable(row['status']):<11} {found:<12} "
+            f"{cell(row.get('fps'), '.1f'):>7} {cell(row.get('wall_s'), '.1f'):>7}  {shown}"
+        )
+    lines += [
+        "markers in: frames with markers found, of the frames replayed; fps: frames tracked per second;",
+        "  wall s: the replay's time, start to end (skipped: its earlier run's)",
+    ]
+    return "\n".join(lines)
 
 
 def usable_cores() -> int:

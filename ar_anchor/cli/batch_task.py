@@ -106,6 +106,7 @@ def fill_row(row: dict[str, Any], out_dir: Path, *, rigid_sheet: bool) -> None:
         return
     frames = int(summary.get("frames") or 0)
     row["frames"] = frames
+    row["frames_with_markers"] = int(summary.get("frames_with_markers") or 0)
     row["fps"] = _finite(summary.get("fps"))
     row["detection_rate"] = _fraction(summary.get("frames_with_pose") or 0, frames)
     targets = summary.get("targets") or {}

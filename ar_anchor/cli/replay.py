@@ -21,12 +21,14 @@ from .options import (
     camera_for_source,
     default_out,
     load_tracker_config,
+    output_path,
     positive_float,
     run_options,
 )
 from .report import Progress, finish
 
 if TYPE_CHECKING:
+    from ..run.stills import StillsPlan
     from ..sources.base import SourceInfo
 
 log = logging.getLogger(__name__)
@@ -57,6 +59,14 @@ def add_parser(commands: Any) -> None:
         "before it is decoded): a larger image is skipped, a larger video refused",
     )
     add_run_options(replay, "replay")
+    replay.add_argument(
+        "--images-out",
+        type=output_path,
+        default=None,
+        metavar="DIR",
+        help="an image folder or glob: also write each image with its overlays drawn (as --video-out draws "
+        "them) to DIR, under the same file name and format; DIR may not be the images' own folder",
+    )
     add_camera_options(replay)
     add_export_options(replay, "SOURCE decoded again")
     replay.set_defaults(func=cmd_replay)
@@ -131,6 +141,22 @@ def replay_camera(args: argparse.Namespace, source: Any) -> tuple[Any, Path | No
     return camera, camera_path, given
 
 
+def _images_out(args: argparse.Namespace, source: Any) -> StillsPlan | None:
+    """``--images-out DIR`` checked against the source (an image folder or glob only: a video's frames have no
+    file names to keep) and the files in DIR (:func:`~ar_anchor.run.stills.plan_images_out`); None without it."""
+    from ..errors import InputError
+    from ..run.stills import plan_images_out
+
+    if args.images_out is None:
+        return None
+    if not hasattr(source, "files"):
+        raise InputError(
+            f"--images-out {printable(args.images_out)}: {printable(args.source)} is a video; --images-out writes "
+            "one annotated image per image of a folder or glob (an annotated video: --video-out FILE.mp4)"
+        )
+    return plan_images_out(args.images_out, source.files)
+
+
 def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
     """Are the source's frames independent stills (an image folder or glob, without ``--sequence`` or
     ``--fps``)? Says which was assumed, in one line (unless ``-q``; summary.json's ``decided_with`` says it
@@ -194,6 +220,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     max_pixels = None if args.max_megapixels is None else max(1, int(args.max_megapixels * 1e6))
     with open_source(args.source, live=False, fps=args.fps, max_pixels=max_pixels) as source:
         camera, camera_path, camera_from = replay_camera(args, source)
+        images_out = _images_out(args, source)
         stills = stills_assumed(args, source.info)
         if stills:  # each image alone: exactly the per-frame pipeline, nothing carried from one to the next
             config = config.with_overrides(filter_enabled=False)
@@ -201,6 +228,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
             args,
             f"replay {args.source}",
             record_fps=source.info.fps or 30.0,
+            images_out=images_out,
             extra_summary={
                 "command": "replay",
                 "source": str(args.source),
@@ -210,8 +238,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         out_dir = args.out or default_out("replay")
         inputs = source_inputs(source) + config_inputs(config, args.config, camera_path)
         frames_csv = [("--out", out_dir / FRAMES_CSV)] if hasattr(source, "files") else []
+        stills_named = (
+            [] if images_out is None else [("--images-out", images_out.folder / n) for n in images_out.names.values()]
+        )
         outputs_named = run_output_paths(
-            out_dir, video_out=args.video_out, extra=[*export_outputs(args, out_dir), *frames_csv]
+            out_dir, video_out=args.video_out, extra=[*export_outputs(args, out_dir), *frames_csv, *stills_named]
         )
         offline = None
         if not args.causal and config.filter.enabled:  # (--no-filter: nothing to decide with hindsight)

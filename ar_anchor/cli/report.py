@@ -10,18 +10,49 @@ from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, printable
 
+PLAIN_EVERY_S = 5.0  # a piped run's progress: a plain line this often (seconds)
+
+
+class PlainProgress:
+    """Progress where stderr is no terminal (piped, redirected to a log): a plain line every
+    :data:`PLAIN_EVERY_S` seconds (``replay: 120 of 450 frames, 24.1 fps, 5.0 s``), none for a run shorter."""
+
+    def __init__(self, desc: str) -> None:
+        self.desc = desc
+        self.start = time.monotonic()
+        self.last = self.start
+
+    def __call__(self, done: int, total: int | None, _result: object = None) -> None:
+        now = time.monotonic()
+        if now - self.last < PLAIN_EVERY_S:
+            return
+        self.last = now
+        elapsed = now - self.start
+        frames = f"{done} of {total} frames" if total is not None else f"{done} frames"
+        try:
+            sys.stderr.write(f"{self.desc}: {frames}, {done / max(elapsed, 1e-9):.1f} fps, {elapsed:.1f} s\n")
+            sys.stderr.flush()
+        except (OSError, ValueError):  # a reader gone away: the run goes on
+            pass
+
 
 class Progress:
-    """A tqdm bar on a terminal (frames, fps, ETA), nothing otherwise."""
+    """A tqdm bar on a terminal (frames, fps, ETA); elsewhere a plain line every few seconds
+    (:class:`PlainProgress`); nothing when not ``enabled`` (-q)."""
 
     def __init__(self, enabled: bool, desc: str) -> None:
         self.bar = None
+        self.plain: PlainProgress | None = None
         if enabled and sys.stderr.isatty():
             from tqdm import tqdm
 
             self.bar = tqdm(desc=desc, unit="frame", leave=False, dynamic_ncols=True)
+        elif enabled:
+            self.plain = PlainProgress(desc)
 
     def __call__(self, done: int, total: int | None, _result: object = None) -> None:
+        if self.plain is not None:
+            self.plain(done, total)
         if self.bar is None:
             return
         if total is not None and self.bar.total != total:
@@ -34,10 +65,12 @@ class Progress:
 
 
 class LiveStatus:
-    """One status line for live runs, rewritten about twice a second on a terminal."""
+    """One status line for live runs, rewritten about twice a second on a terminal (piped: a plain line every
+    few seconds)."""
 
     def __init__(self, enabled: bool, stats: Any) -> None:
         self.enabled = enabled and sys.stderr.isatty()
+        self.plain = PlainProgress("live") if enabled and not self.enabled else None  # piped: a line now and then
         self.stats = stats
         self.start = time.monotonic()
         self.last = 0.0
@@ -50,6 +83,8 @@ class LiveStatus:
                 if done > 1
                 else sum(result.latency_ms.values())
             )
+        if self.plain is not None:
+            self.plain(done, None)
         now = time.monotonic()
         if not self.enabled or now - self.last < 0.5:
             return
@@ -79,20 +114,25 @@ def finish(args: argparse.Namespace, outputs: Any) -> int:
     video = outputs.summary.get("video_out")
     if video:
         print(f"annotated video: {printable(video['path'])} ({video['frames']} frames)")
+    images = outputs.summary.get("images_out")
+    if images:
+        print(f"annotated images: {printable(images['folder'])}/ ({images['images']} images)")
     status = outputs.summary.get("status")
     return EXIT_OK if status == "completed" else EXIT_FAILURE
 
 
+FEW_FRAMES = 30  # a run of at most this many frames (or of stills) says where each target was
+
+
 def format_summary(summary: dict[str, Any]) -> str:
-    """The run's summary as a small fixed-width table."""
+    """The run's summary as a small fixed-width table, its columns explained below it; for a run of a few
+    frames (or of independent stills) where each target was (:func:`format_where`)."""
     fps = summary.get("fps")
     lines = [
         f"{summary['frames']} frames in {summary['wall_time_s']:.1f} s ({fps:.1f} fps)"
         if fps
         else f"{summary['frames']} frames",
-        f"markers found in {summary['frames_with_markers']} of {summary['frames']} frames, "
-        f"a pose in {summary['frames_with_pose']}"
-        + (f" ({summary['dictionary_hint']})" if summary.get("dictionary_hint") else ""),
+        _markers_line(summary),
     ]
     truth = summary.get("ground_truth")
     header = f"{'target':<12} {'detected':>9} {'tracked/ambig/gap':>18}"
@@ -115,4 +155,78 @@ def format_summary(summary: dict[str, Any]) -> str:
             row += f" {entry['frames_in_view']:>8} {'-' if rate is None else f'{100 * rate:.0f}%':>6}"
             row += f" {pair(rot):>17} {pair(trans):>17}"
         lines.append(row)
+    if summary["targets"]:
+        lines += _legend(bool(truth))
+    if summary["targets"] and (
+        summary["frames"] <= FEW_FRAMES or str(summary.get("decided_with", "")).endswith("(independent stills)")
+    ):
+        lines += ["", *format_where(summary)]
     return "\n".join(lines)
+
+
+def _markers_line(summary: dict[str, Any]) -> str:
+    """How many frames had markers, and a pose; frames whose markers all shared an id with another (none of
+    them used: which is which cannot be told) are said as such, not as frames without markers."""
+    frames, found = summary["frames"], summary["frames_with_markers"]
+    only_duplicated = summary.get("frames_with_only_duplicated_ids", 0)
+    hint = f" ({summary['dictionary_hint']})" if summary.get("dictionary_hint") else ""
+    line = f"markers found in {found} of {frames} frames, a pose in {summary['frames_with_pose']}{hint}"
+    if not summary.get("frames_with_duplicated_ids"):
+        return line
+    ids = summary.get("duplicated_ids") or []
+    named = f"id {ids[0]}" if len(ids) == 1 else f"ids {', '.join(str(i) for i in ids)}"
+    appeared = "appeared" if len(ids) == 1 else "each appeared"
+    was = "was" if len(ids) == 1 else "were"
+    if only_duplicated:
+        seen = found + only_duplicated
+        which = "every one" if only_duplicated == frames else f"{only_duplicated} of them"
+        return (
+            f"markers detected in {seen} of {frames} frames, but in {which} {named} {appeared} more than once "
+            f"and {was} not used: give each marker its own id\n"
+            f"markers used in {found} of {frames} frames, a pose in {summary['frames_with_pose']}{hint}"
+        )
+    return (
+        f"{line}; {named} {appeared} more than once in {summary['frames_with_duplicated_ids']} frame(s) and "
+        f"{was} not used there: give each marker its own id"
+    )
+
+
+def _legend(truth: bool) -> list[str]:
+    """What the table's columns mean, in words."""
+    lines = [
+        "columns: detected = frames with a measured pose; tracked/ambig/gap = frames whose pose was tracked",
+        "  (flip decided) / ambiguous (two poses fit about equally: the likelier shown) / a gap filled (not measured)",
+    ]
+    if truth:
+        lines += [
+            "  in view = frames the target was in view (ground truth); rate = detected / in view",
+            "  rot med/p95 deg = rotation error to the ground truth, degrees: median / 95th percentile over frames",
+            "  trans med/p95 % = position error, % of the true distance: median / 95th percentile over frames",
+        ]
+    return lines
+
+
+def format_where(summary: dict[str, Any]) -> list[str]:
+    """Where each target was: its last state, its distance from the camera (m) and its tilt to the line of sight
+    (deg; 0 faces the camera), the median over the frames it had a pose in (the value itself for one frame)."""
+    frames = summary["frames"]
+    header = f"{'target':<12} {'last state':<11} {'distance m':>10} {'tilt deg':>9}  seen in"
+    lines = [header, "-" * len(header)]
+    for name, entry in summary["targets"].items():
+        distance = (entry.get("distance_m") or {}).get("median")
+        tilt = (entry.get("tilt_deg") or {}).get("median")
+        if distance is None:
+            continue
+        tilt_text = "-" if tilt is None else f"{tilt:.1f}"
+        lines.append(
+            f"{printable(name):<12} {entry.get('last_state', ''):<11} {distance:>10.3f} {tilt_text:>9}  "
+            f"{entry['frames_measured']} of {frames} frames"
+        )
+    if len(lines) == 2:
+        return []
+    what = "in that frame" if frames == 1 else "median over the frames it had a pose in"
+    lines += [
+        f"distance = camera to the target's origin (a marker's centre), {what};",
+        "  tilt = angle between the target's face normal and the line of sight (0 = facing the camera, 90 = edge-on)",
+    ]
+    return lines

@@ -37,6 +37,7 @@ from ..errors import ArAnchorError, InputError, OutputError, printable
 from ..render.overlay import OverlayRenderer
 from ..render.video import SUPPORTED_EXTENSIONS
 from ..sources.base import Frame, FrameSource, SourceInfo
+from ..sources.files import IMAGE_EXTENSIONS
 from ..track.ahead import detected_ahead
 from ..track.offline import decide, offline_results
 from ..track.spool import SpoolStore
@@ -161,11 +162,16 @@ def _abandon(
 
 def _overlay_renderer(tracker: Tracker, options: RunOptions) -> OverlayRenderer | None:
     """The overlay renderer (its models read from their files now), None when nothing draws overlays;
-    and ``--video-out`` checked, so that neither fails once outputs exist."""
-    renderer = OverlayRenderer(tracker.config, tracker.camera) if options.overlays or options.video_out else None
+    and ``--video-out`` checked, so that neither fails once outputs exist (``--images-out``: by the command)."""
+    drawn = options.overlays or options.video_out or options.images_out
+    renderer = OverlayRenderer(tracker.config, tracker.camera) if drawn else None
     video_out = options.video_out
     if video_out is not None and video_out.suffix.lower() not in SUPPORTED_EXTENSIONS:
-        raise InputError(f"--video-out {video_out}: unsupported extension (use {', '.join(SUPPORTED_EXTENSIONS)})")
+        still = " (annotated images of an image folder: replay --images-out DIR)"
+        raise InputError(
+            f"--video-out {video_out}: unsupported extension (use {', '.join(SUPPORTED_EXTENSIONS)})"
+            + (still if video_out.suffix.lower() in IMAGE_EXTENSIONS else "")
+        )
     if video_out is not None and (problem := opencv_path_problem(video_out)):
         raise InputError(f"--video-out {os.fsencode(video_out)!r}: {problem}")
     return renderer

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .stills import StillsPlan
 
 __all__ = ["RunOptions"]
 
@@ -26,6 +29,7 @@ class RunOptions:
     record_raw: bool = False  # also write raw.mkv (lossless) + timestamps
     record_fps: float = 30.0
     video_out: Path | None = None  # write the annotated (overlay) video here
+    images_out: StillsPlan | None = None  # write each image's annotated copy (an image folder's --images-out)
     overlays: bool = True  # the config's overlays (meshes in the recording; drawn for --video-out / overlay_images)
     decode_queue: int = 4  # frames decoded ahead of the tracker (file and synthetic sources)
     output_queue: int = 8  # tracked frames waiting for their overlay, video and rerun log

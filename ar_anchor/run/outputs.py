@@ -34,6 +34,7 @@ __all__ = [
     "SummaryFile",
     "WholeLinesFile",
     "check_not_a_file",
+    "distance_and_tilt",
     "is_disk_full",
     "prepare_out_dir",
     "prepare_out_file_folder",
@@ -379,6 +380,35 @@ class _TargetStats:
     measured_in_view: int = 0
     rotation_errors_deg: list[float] = field(default_factory=list)
     translation_errors_pct: list[float] = field(default_factory=list)
+    distance_m: array.array = field(default_factory=lambda: array.array("d"))  # each measured frame's
+    tilt_deg: array.array = field(default_factory=lambda: array.array("d"))
+    last_state: str = ""  # the state of the last frame it was measured in
+
+
+def distance_and_tilt(pose: Pose) -> tuple[float, float]:
+    """How far the target is (metres, camera to the target's origin: ``||t||``, which is also the norm of the
+    camera's centre in the target's frame) and how tilted it is to the camera (degrees: the angle between its z
+    axis and the line of sight to it; 0 faces the camera, 90 is seen edge-on), from ``camera_from_target``."""
+    translation = np.asarray(pose.tvec, np.float64)
+    distance = float(np.linalg.norm(translation))
+    if not distance > 0.0:
+        return distance, math.nan
+    normal = pose.rotation[:, 2]
+    cosine = min(1.0, abs(float(normal @ translation)) / distance)
+    return distance, math.degrees(math.acos(cosine))
+
+
+def _where(stats: _TargetStats) -> dict[str, Any]:
+    """summary.json's ``distance_m`` and ``tilt_deg`` of a target: the median over its measured frames and the
+    last one (None when it was never measured)."""
+
+    def pair(values: array.array) -> dict[str, float | None]:
+        finite = [v for v in values if math.isfinite(v)]
+        if not finite:
+            return {"median": None, "last": None}
+        return {"median": float(np.median(finite)), "last": finite[-1]}
+
+    return {"distance_m": pair(stats.distance_m), "tilt_deg": pair(stats.tilt_deg), "last_state": stats.last_state}
 
 
 class RunSummary:
@@ -388,6 +418,10 @@ class RunSummary:
         self.frames = 0
         self.frames_with_markers = 0
         self.frames_with_pose = 0
+        # markers seen but every one dropped: ids seen more than once in the frame (which is which is unknown)
+        self.frames_with_only_duplicates = 0
+        self.frames_with_duplicates = 0
+        self.duplicated_ids: set[int] = set()
         self.targets: dict[str, _TargetStats] = {}
         self.has_truth = False
         self.latency_ms: dict[str, array.array] = {}  # stage -> ms per frame (8 bytes a value)
@@ -398,6 +432,11 @@ class RunSummary:
         """One tracked frame; ``stages``: the run loop's own per-frame times (ms) beside the tracker's."""
         self.frames += 1
         self.frames_with_markers += len(result.detections) > 0
+        duplicated = getattr(result.detections, "duplicated", ())
+        if len(duplicated):
+            self.frames_with_duplicates += 1
+            self.frames_with_only_duplicates += len(result.detections) == 0
+            self.duplicated_ids.update(int(i) for i in duplicated)
         self.frames_with_pose += any(t.measured for t in result.targets.values())
         self.add_latency({key: [value] for key, value in {**result.latency_ms, **(stages or {})}.items()})
         if truth is not None:
@@ -415,6 +454,10 @@ class RunSummary:
             if not target.measured:
                 continue
             stats.measured += 1
+            distance, tilt = distance_and_tilt(target.pose)
+            stats.distance_m.append(distance)
+            stats.tilt_deg.append(tilt)
+            stats.last_state = str(target.state)
             true_pose = truth.get(name) if truth is not None else None
             if true_pose is None:
                 continue
@@ -436,6 +479,7 @@ class RunSummary:
                 "frames_measured": stats.measured,
                 "detection_rate": stats.measured / self.frames if self.frames else 0.0,
                 "states": dict(stats.states),
+                **_where(stats),
             }
             if stats.causal_states is not None:
                 entry["causal_states"] = dict(stats.causal_states)
@@ -452,6 +496,9 @@ class RunSummary:
             "frames": self.frames,
             "frames_with_markers": self.frames_with_markers,
             "frames_with_pose": self.frames_with_pose,
+            "frames_with_duplicated_ids": self.frames_with_duplicates,
+            "frames_with_only_duplicated_ids": self.frames_with_only_duplicates,
+            "duplicated_ids": sorted(self.duplicated_ids),
             "wall_time_s": wall_time_s,
             "fps": self.frames / wall_time_s if wall_time_s > 0 else None,
             "ground_truth": self.has_truth,

@@ -1,8 +1,8 @@
 """Everything one run writes, owned by one object that opens it and closes it in a written-down order.
 
 :class:`RunOutputs` owns ``poses.csv``, the statistics for ``summary.json``, ``raw.mkv`` (``--record``),
-the annotated video (``--video-out``), the rerun recording, and the output thread that draws and
-logs each tracked frame behind the tracker (:class:`~.threads.OutputStage`).
+the annotated video (``--video-out``) and images (``--images-out``), the rerun recording, and the output
+thread that draws and logs each tracked frame behind the tracker (:class:`~.threads.OutputStage`).
 
 :meth:`RunOutputs.close` closes them in this order, each step taken even when one before it failed
 (the last failure is raised, with the earlier ones as its context, as nested ``finally`` blocks would):
@@ -10,9 +10,10 @@ logs each tracked frame behind the tracker (:class:`~.threads.OutputStage`).
 1. the output thread: it finishes the frames already queued, so that the recording and the annotated
    video end on the same frame as ``poses.csv``; it writes into both, so it stops first;
 2. the annotated video: its encoder flushed, the container finalised (playable even if that fails);
-3. ``raw.mkv`` and its timestamps;
-4. ``poses.csv`` (flushed after every frame already);
-5. the recording: flushed (bounded, so a viewer that went away does not hang the end) and closed.
+3. the annotated images' list (each image was written whole as it came);
+4. ``raw.mkv`` and its timestamps;
+5. ``poses.csv`` (flushed after every frame already);
+6. the recording: flushed (bounded, so a viewer that went away does not hang the end) and closed.
 
 :meth:`RunOutputs.write_summary` then writes ``summary.json``, whatever happened before: how the run
 ended, and how many frames reached the video and the recording, which only the closed outputs know.
@@ -47,6 +48,7 @@ from ..track.tracker import FrameResult
 from .options import RunOptions
 from .outputs import DiskFullError, PosesCsvWriter, RawVideoWriter, RunSummary, SummaryFile, is_disk_full
 from .paths import OutDirLock
+from .stills import AnnotatedStillsWriter
 from .threads import OutputStage
 
 if TYPE_CHECKING:  # imported by the thread that opens the outputs (rerun: 0.3-0.5 s), see RunOutputs.open
@@ -107,12 +109,14 @@ class RunOutputs:
         self._csv: PosesCsvWriter | None = None
         self._raw: RawVideoWriter | None = None
         self._video: AnnotatedVideoWriter | None = None
+        self._stills: AnnotatedStillsWriter | None = None
         self._stage: OutputStage | None = None
         self._stage_open = False
         self._opening: threading.Thread | None = None  # opens the outputs (see open)
         self._open_error: BaseException | None = None  # what failed to open them, not raised yet
         # what the closed outputs report in summary.json
         self._video_frames = 0
+        self._stills_written = 0
         self._recording_parts: list[str] = []
 
     # ------------------------------------------------------------------ opening
@@ -183,6 +187,8 @@ class RunOutputs:
             self._raw = RawVideoWriter(self.raw_video, fps=options.record_fps)
         if options.video_out is not None:
             self._video = AnnotatedVideoWriter(options.video_out, fps=options.record_fps)
+        if options.images_out is not None:
+            self._stills = AnnotatedStillsWriter(options.images_out)
         self._stage = OutputStage(self._draw_and_log, depth=options.output_queue)
         self._stage_open = True
 
@@ -201,7 +207,8 @@ class RunOutputs:
                 self._raw.write(frame.image, frame.index, frame.timestamp_ns)
             self._csv.write(result)
             self.summary.add(result, truth, stages)
-            self._stage.submit(frame, result, stages, block=not self._live or self._video is not None)
+            every_frame = self._video is not None or self._stills is not None
+            self._stage.submit(frame, result, stages, block=not self._live or every_frame)
         except OutputError as err:
             raise self._first(err) from None
 
@@ -237,11 +244,14 @@ class RunOutputs:
         t0 = time.perf_counter()
         annotated = None
         overlay_image = self._options.overlays and recorder.wants_overlay_image(frame)
-        if self._renderer is not None and (self._video is not None or overlay_image):
+        still = self._stills is not None and self._stills.wants(frame.index)
+        if self._renderer is not None and (self._video is not None or overlay_image or still):
             annotated = self._renderer.annotate(frame.image, result)
         t1 = time.perf_counter()
         if self._video is not None:
             self._video.write(annotated)
+        if still and annotated is not None:
+            self._stills.write(frame.index, annotated)  # type: ignore[union-attr]
         recorder.log_frame(frame, result, annotated if overlay_image else None, stages=stages)
         t2 = time.perf_counter()
         measured = {"render_ms": (t1 - t0) * 1e3, "log_ms": (t2 - t1) * 1e3}
@@ -257,6 +267,7 @@ class RunOutputs:
                     self.wait_open,  # what failed to open is raised, and what did open is closed
                     self._stop_output_thread,
                     self._close_annotated_video,
+                    self._close_stills,
                     self._close_raw_video,
                     self._close_poses_csv,
                     self._close_recording,
@@ -290,6 +301,12 @@ class RunOutputs:
             except OutputError as err:
                 raise self._first(err, Path(video.path)) from None
 
+    def _close_stills(self) -> None:
+        if self._stills is not None:
+            stills, self._stills = self._stills, None
+            self._stills_written = stills.written
+            stills.close()
+
     def _close_raw_video(self) -> None:
         if self._raw is not None:
             raw, self._raw = self._raw, None
@@ -316,6 +333,8 @@ class RunOutputs:
         counts = dict(options.extra_summary)
         if options.video_out is not None:
             counts["video_out"] = {"path": str(options.video_out), "frames": self._video_frames}
+        if options.images_out is not None:
+            counts["images_out"] = {"folder": str(options.images_out.folder), "images": self._stills_written}
         if len(self._recording_parts) > 1:
             counts["recording_parts"] = self._recording_parts  # open together: rerun recording*.rrd
         if self._stage is not None:

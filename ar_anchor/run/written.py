@@ -39,7 +39,7 @@ def refuse_theirs(out: Path, theirs: list[str], *, not_written_by: str, writer: 
         them = "them" if len(theirs) > 1 else "it"
         raise InputError(
             f"{option} {printable(out)}: holds {shown}, which {not_written_by}; {writer} would overwrite {them}: "
-            f"move {them} or give another --out"
+            f"move {them} or give another {option}"
         )
 
 

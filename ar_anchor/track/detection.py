@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -25,10 +25,13 @@ class MarkerDetections:
     ----------
     ids : (N,) int32 marker ids.
     corners : (N, 4, 2) float64 pixel coordinates, TL, TR, BR, BL (pixel centres at integers).
+    duplicated : (M,) int32 ids seen more than once in the image, dropped (not in ``ids``): which marker
+        is which cannot be told, so none of them is used.
     """
 
     ids: np.ndarray
     corners: np.ndarray
+    duplicated: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
 
     def __post_init__(self) -> None:
         ids = np.asarray(self.ids, dtype=np.int32).reshape(-1)
@@ -37,6 +40,7 @@ class MarkerDetections:
             raise ValueError(f"MarkerDetections: {len(ids)} ids but {len(corners)} corner sets")
         object.__setattr__(self, "ids", ids)
         object.__setattr__(self, "corners", corners)
+        object.__setattr__(self, "duplicated", np.asarray(self.duplicated, dtype=np.int32).reshape(-1))
 
     @classmethod
     def empty(cls) -> MarkerDetections:
@@ -194,7 +198,9 @@ class Detector:
         if self._edges:
             k, dist = (None, None) if camera is None else (camera.camera_matrix, camera.dist_or_none)
             detections = MarkerDetections(
-                detections.ids, refine_corners_by_edges(grey, detections.corners, self.cells, k, dist)
+                detections.ids,
+                refine_corners_by_edges(grey, detections.corners, self.cells, k, dist),
+                detections.duplicated,
             )
         return detections
 
@@ -327,7 +333,7 @@ class Detector:
             new = ~np.isin(recovered.ids, detections.ids)
             refined = recovered.corners.copy()
             refined[new] = refine_corners_by_edges(grey, refined[new], self.cells, camera_matrix, dist)
-            recovered = MarkerDetections(recovered.ids, refined)
+            recovered = MarkerDetections(recovered.ids, refined, recovered.duplicated)
         return recovered
 
     def _clean(self, ids: np.ndarray, corners: np.ndarray) -> MarkerDetections:
@@ -343,4 +349,4 @@ class Detector:
             keep = ~np.isin(ids, duplicated)
             ids, corners = ids[keep], corners[keep]
         order = np.argsort(ids, kind="stable")
-        return MarkerDetections(ids[order], corners[order])
+        return MarkerDetections(ids[order], corners[order], duplicated)

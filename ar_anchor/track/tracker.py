@@ -285,7 +285,9 @@ class Tracker:
         if not new.any():
             return detections
         return MarkerDetections(
-            np.concatenate([detections.ids, again.ids[new]]), np.concatenate([detections.corners, again.corners[new]])
+            np.concatenate([detections.ids, again.ids[new]]),
+            np.concatenate([detections.corners, again.corners[new]]),
+            np.union1d(detections.duplicated, again.duplicated),
         )
 
     def _fast_allowed(self, size: tuple[int, int], blurred: bool) -> bool:

@@ -200,6 +200,7 @@ OPTIONS = {
     "replay": {
         "--camera": CAMERAS,
         "--fps": floats(0.001, 1e6),
+        "--images-out": opt(st.sampled_from(["ann", "sub/ann"]), PATHS | st.sampled_from(["a_file/ann", "imgs/."])),
         **TRACKER_OPTIONS,
         **RUN_OPTIONS,
         **COMMON,
