@@ -215,8 +215,8 @@ class CameraModel:
             raise CameraError(f"camera file {printable(path)}: {err}") from err
         return camera
 
-    def to_yaml(self, path: str | os.PathLike[str], **extra: str | float | int) -> None:
-        """Write the OpenCV FileStorage YAML that :meth:`from_yaml` reads (extra scalars appended)."""
+    def to_yaml(self, path: str | os.PathLike[str], **extra: str | float | int | np.ndarray) -> None:
+        """Write the OpenCV FileStorage YAML that :meth:`from_yaml` reads (extra scalars and matrices appended)."""
         problem = opencv_path_problem(path)
         if problem is not None:
             raise OutputError(f"{path}: cannot write ({problem})")
