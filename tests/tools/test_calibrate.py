@@ -12,6 +12,7 @@ applied by resampling that pinhole canvas at each output pixel's undistorted pos
 from __future__ import annotations
 
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -286,6 +287,32 @@ def test_cli_writes_a_camera_file_and_a_recording(views_dir, tmp_path):
     assert verify.returncode == 0, verify.stderr
 
 
+@pytest.mark.slow
+def test_progress_ends_at_the_count_the_summary_gives(views_dir, tmp_path):
+    # given 8 views as image files, and as a video showing each of them for 3 frames
+    folder = copy_views(views_dir, tmp_path / "shots", 8)
+    video = tmp_path / "shots.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (WIDTH, HEIGHT))
+    for path in sorted(folder.glob("*.png")):
+        for _ in range(3):
+            writer.write(cv2.imread(str(path)))
+    writer.release()
+    for source, frames in ((folder, 8), (video, 24)):
+        # when each is calibrated with its output piped (not a terminal)
+        result = run_cli([str(source), *BOARD_ARGS, "--out", f"{source.stem}/camera.yml"], tmp_path)
+        assert result.returncode == 0, result.stderr
+        # then the last progress line counts the frames the summary counts
+        counts = re.findall(r"^ar-anchor: considered (?:all )?(\d+)", result.stderr, re.MULTILINE)
+        summary = re.search(r"(\d+) view\(s\) considered", result.stdout)
+        assert counts and summary, (result.stderr, result.stdout)
+        assert int(counts[-1]) == int(summary.group(1)) == frames, (counts, summary.group(0))
+        # and the uncertainty's last progress line counts the calibrations the report used
+        runs = re.findall(r"^ar-anchor: uncertainty: (\d+)/(\d+)", result.stderr, re.MULTILINE)
+        used = re.search(r"spread over (\d+) calibrations on resampled views \(of 8,", result.stdout)
+        assert runs and used, (result.stderr, result.stdout)
+        assert runs[-1][0] == runs[-1][1] == used.group(1), (runs, used.group(0))
+
+
 # ======================================================================== view selection
 
 
@@ -418,6 +445,10 @@ def test_device_capture_keeps_distinct_views_until_max_views(views_dir):
     assert time.monotonic() - started < 20
     assert len(report.views) == 6
     assert sum("kept" in m for m in messages) == 6
+    # the capture's last line counts the frames the report counts
+    assert [m for m in messages if m.startswith("capture ended")] == [
+        f"capture ended: {report.considered} frames considered, 6/6 views"
+    ]
     frames = [v.frame for v in report.views]
     assert all(b - a >= 15 for a, b in zip(frames, frames[1:]))  # at least 0.5 s of capture time apart
     assert abs(report.camera.camera_matrix[0, 0] / TRUE_K[0, 0] - 1) < 0.02

@@ -72,6 +72,9 @@ def _gather_files(
                 last_report = time.monotonic()
                 total = f"/{math.ceil(count / step)}" if count else ""
                 progress(f"considered {considered}{total} frames, board in {len(views)}")
+    if progress is not None:  # the last line counts what the report will: every frame considered
+        sampled = f" (one in {step})" if step > 1 else ""
+        progress(f"considered all {considered} frames{sampled}, board in {len(views)}")
     return views, rejections, considered, size, step
 
 
@@ -141,6 +144,8 @@ def _gather_device(
     except KeyboardInterrupt:
         if progress is not None:
             progress("capture stopped (Ctrl-C): calibrating with the views kept so far")
+    if progress is not None:
+        progress(f"capture ended: {considered} frames considered, {len(selector.kept)}/{max_views} views")
     return list(selector.kept), rejections, considered, size
 
 
