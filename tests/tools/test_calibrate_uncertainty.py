@@ -100,6 +100,21 @@ def test_same_views_give_the_same_uncertainty(renderer):
     assert other_seed.bootstrap_std != first.bootstrap_std
 
 
+def test_the_bootstrap_stops_at_its_time_budget_and_says_so(renderer):
+    views = warped_views(renderer, board_poses(renderer, 8, seed=5), 5)
+    result = calibrate_views(spec(), views, SIZE, min_views=6)
+    messages: list[str] = []
+    uncertainty = bootstrap_uncertainty(spec(), result, SIZE, resamples=50, budget_s=0.0, progress=messages.append)
+    assert uncertainty.ran == 0 and uncertainty.planned == 50
+    assert messages == [
+        f"uncertainty: 0/50 resampled calibrations of {len(views)} views (0.0 s, stopped at the 0 s budget)"
+    ]
+    # the report falls back on OpenCV's estimate and says the uncertainty is unreliable
+    assert uncertainty.std[:4] == result.std[:4]
+    assert any(d.startswith("only 0 calibrations on resampled views succeeded") for d in uncertainty.distrust)
+    assert uncertainty.describe().startswith("OpenCV's estimate from the residuals")
+
+
 def test_few_views_and_parallel_views_are_flagged(renderer):
     # given four views (fewer than eight)
     poses = board_poses(renderer, 12, seed=3)

@@ -272,7 +272,12 @@ class Uncertainty:
     def describe(self, *, timed: bool = False) -> str:
         """One line: how the uncertainty was estimated (``timed``: with the bootstrap's duration)."""
         if self.ran - self.failed < 2:
-            return f"OpenCV's estimate from the residuals ({self.views} view(s): too few to resample)"
+            why = (
+                f"{self.views} view(s): too few to resample"
+                if not self.planned
+                else f"{self.ran - self.failed} of {self.planned} calibrations on resampled views succeeded"
+            )
+            return f"OpenCV's estimate from the residuals ({why})"
         duration = f", {self.seconds:.1f} s" if timed else ""
         return (
             f"the larger of the spread over {self.ran - self.failed} calibrations on resampled views "
@@ -331,7 +336,7 @@ def bootstrap_uncertainty(
     planned = resamples if count >= 3 else 0
     last_report = started
     for _ in range(planned):
-        if time.monotonic() - started > budget_s:
+        if time.monotonic() - started >= budget_s:
             break
         picks = _resample(rng, count)
         ran += 1
@@ -358,7 +363,8 @@ def bootstrap_uncertainty(
             progress(f"uncertainty: {ran}/{planned} resampled calibrations ({last_report - started:.0f} s)")
     seconds = time.monotonic() - started
     if progress is not None and planned:
-        progress(f"uncertainty: {ran}/{planned} resampled calibrations of {count} views ({seconds:.1f} s)")
+        stopped = f", stopped at the {budget_s:g} s budget" if ran < planned else ""
+        progress(f"uncertainty: {ran}/{planned} resampled calibrations of {count} views ({seconds:.1f} s{stopped})")
     bootstrap = np.std(samples, axis=0, ddof=1) if len(samples) >= 2 else np.full(len(PARAMETERS), np.nan)
     opencv = np.asarray(result.std, np.float64)
     std = np.where(np.isnan(bootstrap), opencv, np.fmax(bootstrap, opencv))
