@@ -254,7 +254,8 @@ class Uncertainty:
     std : of fx, fy, cx, cy (px), k1, k2, p1, p2, k3 (NaN for a parameter held fixed): per parameter the
         larger of ``bootstrap_std`` and OpenCV's own estimate (:attr:`CalibrationResult.std`).
     bootstrap_std : the standard deviation of the parameters over calibrations on views drawn with
-        replacement from the used ones (NaN when fewer than two succeeded).
+        replacement from the ``n`` used ones, times ``sqrt(n / (n - 1))`` (the plug-in bootstrap's bias for
+        n samples; NaN when fewer than two calibrations succeeded).
     planned, ran, failed : resampled calibrations wanted, run (fewer when the time budget ran out), and
         failed (no plausible camera); ``views`` the views resampled.
     distrust : the reasons not to trust the uncertainty itself (empty: none known).
@@ -365,7 +366,11 @@ def bootstrap_uncertainty(
     if progress is not None and planned:
         stopped = f", stopped at the {budget_s:g} s budget" if ran < planned else ""
         progress(f"uncertainty: {ran}/{planned} resampled calibrations of {count} views ({seconds:.1f} s{stopped})")
-    bootstrap = np.std(samples, axis=0, ddof=1) if len(samples) >= 2 else np.full(len(PARAMETERS), np.nan)
+    bootstrap = np.full(len(PARAMETERS), np.nan)
+    if (
+        len(samples) >= 2
+    ):  # (scaled by sqrt(n / (n - 1)): resampling n views underestimates the variance by that factor)
+        bootstrap = np.std(samples, axis=0, ddof=1) * math.sqrt(count / (count - 1))
     opencv = np.asarray(result.std, np.float64)
     std = np.where(np.isnan(bootstrap), opencv, np.fmax(bootstrap, opencv))
     if result.flags & cv2.CALIB_FIX_K3:
