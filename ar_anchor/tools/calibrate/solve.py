@@ -367,9 +367,7 @@ def bootstrap_uncertainty(
         stopped = f", stopped at the {budget_s:g} s budget" if ran < planned else ""
         progress(f"uncertainty: {ran}/{planned} resampled calibrations of {count} views ({seconds:.1f} s{stopped})")
     bootstrap = np.full(len(PARAMETERS), np.nan)
-    if (
-        len(samples) >= 2
-    ):  # (scaled by sqrt(n / (n - 1)): resampling n views underestimates the variance by that factor)
+    if len(samples) >= 2:  # resampling n views underestimates the variance by (n - 1) / n
         bootstrap = np.std(samples, axis=0, ddof=1) * math.sqrt(count / (count - 1))
     opencv = np.asarray(result.std, np.float64)
     std = np.where(np.isnan(bootstrap), opencv, np.fmax(bootstrap, opencv))
