@@ -302,8 +302,8 @@ class CameraModel:
         log.info("%s: %dx%d, fx %.1f px", where, width, height, camera.camera_matrix[0, 0])
         return camera
 
-    def to_yaml(self, path: str | os.PathLike[str], **extra: str | float | int) -> None:
-        """Write the OpenCV FileStorage YAML that :meth:`from_yaml` reads (extra scalars appended)."""
+    def to_yaml(self, path: str | os.PathLike[str], **extra: str | float | int | np.ndarray) -> None:
+        """Write the OpenCV FileStorage YAML that :meth:`from_yaml` reads (extra scalars and matrices appended)."""
         problem = opencv_path_problem(path)
         if problem is not None:
             raise OutputError(f"{path}: cannot write ({problem})")

@@ -12,6 +12,7 @@ applied by resampling that pinhole canvas at each output pixel's undistorted pos
 from __future__ import annotations
 
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -70,8 +71,8 @@ class BoardRenderer:
     """Renders the board seen by the true (distorted) camera; board frame: OpenCV's (origin at the
     chessboard's top-left corner, x right, y down, z into the board)."""
 
-    def __init__(self) -> None:
-        self.camera = CameraModel(TRUE_K, TRUE_DIST, WIDTH, HEIGHT)
+    def __init__(self, camera: CameraModel | None = None) -> None:
+        self.camera = camera or CameraModel(TRUE_K, TRUE_DIST, WIDTH, HEIGHT)
         self.pinhole, self.maps = pinhole_canvas(self.camera)
         assert self.maps is not None
         board = spec().build()
@@ -109,7 +110,8 @@ class BoardRenderer:
     def outline(self, rotation: np.ndarray, tvec: np.ndarray) -> np.ndarray:
         w, h = COLS * SQUARE_M, ROWS * SQUARE_M
         corners = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], np.float64)
-        pixels, _ = cv2.projectPoints(corners, cv2.Rodrigues(rotation)[0], tvec, TRUE_K, TRUE_DIST)
+        k, dist = self.camera.camera_matrix, self.camera.dist_coeffs
+        pixels, _ = cv2.projectPoints(corners, cv2.Rodrigues(rotation)[0], tvec, k, dist)
         return pixels.reshape(-1, 2)
 
 
@@ -117,6 +119,7 @@ def board_poses(renderer: BoardRenderer, count: int, seed: int = 1) -> list[tupl
     """Varied poses: tilted 20-50 degrees about a random in-plane axis, rolled up to 30 degrees, centred
     around ten image positions (centre, the corners, the sides), as large as fits in the image."""
     rng = np.random.default_rng(seed)
+    width, height = renderer.camera.size
     anchors = [(0.5, 0.5)] + [(x, y) for y in (0.22, 0.5, 0.78) for x in (0.2, 0.5, 0.8)]
     centre_in_board = np.array([COLS * SQUARE_M / 2, ROWS * SQUARE_M / 2, 0.0])
     poses: list[tuple[np.ndarray, np.ndarray]] = []
@@ -124,19 +127,19 @@ def board_poses(renderer: BoardRenderer, count: int, seed: int = 1) -> list[tupl
     while len(poses) < count:
         ax, ay = anchors[attempt % len(anchors)]
         attempt += 1
-        u, v = ax * WIDTH + rng.uniform(-40, 40), ay * HEIGHT + rng.uniform(-30, 30)
+        u, v = ax * width + rng.uniform(-40, 40) * width / WIDTH, ay * height + rng.uniform(-30, 30) * height / HEIGHT
         azimuth = rng.uniform(0.0, 2 * math.pi)
         rotation = _rotation((math.cos(azimuth), math.sin(azimuth), 0.0), rng.uniform(20, 50))
         rotation = rotation @ _rotation((0, 0, 1), rng.uniform(-30, 30))
-        ray = np.linalg.solve(TRUE_K, [u, v, 1.0])
+        ray = np.linalg.solve(renderer.camera.camera_matrix, [u, v, 1.0])
         for depth in np.linspace(0.25, 0.6, 15):  # nearest (largest) first
             tvec = depth * ray - rotation @ centre_in_board
             box = renderer.outline(rotation, tvec)
             if (
                 box[:, 0].min() > 10
-                and box[:, 0].max() < WIDTH - 10
+                and box[:, 0].max() < width - 10
                 and box[:, 1].min() > 10
-                and box[:, 1].max() < HEIGHT - 10
+                and box[:, 1].max() < height - 10
             ):
                 poses.append((rotation, tvec))
                 break
@@ -264,11 +267,17 @@ def test_cli_writes_a_camera_file_and_a_recording(views_dir, tmp_path):
         assert storage.getNode("date").string()[:2] == "20"
         assert storage.getNode("board").string() == "charuco 9x6 square 0.03 marker 0.022 DICT_6X6_250 legacy=false"
         assert int(storage.getNode("views").real()) == 10
+        # the uncertainty: one standard deviation of fx fy cx cy k1 k2 p1 p2 k3, and how it was estimated
+        std = storage.getNode("std_intrinsics").mat().reshape(-1)
+        assert std.shape == (9,) and np.all(np.isfinite(std)) and np.all(std > 0)
+        assert std[0] < 0.01 * camera.camera_matrix[0, 0]
+        assert "resampled views (of 10)" in storage.getNode("std_intrinsics_method").string()
+        assert storage.getNode("std_intrinsics_unreliable").empty()
     finally:
         storage.release()
     assert not list(out.parent.glob(".*tmp*")), "temporary file left behind"
     # the report: counts, intrinsics, distortion, RMS, per-view errors, coverage heat map
-    for text in ("10 view(s) considered, 10 used", "fx ", "k1 ", "RMS ", "per-view px:", "coverage "):
+    for text in ("10 view(s) considered, 10 used", "fx ", "k1 ", "+- is one standard deviation", "RMS ", "coverage "):
         assert text in result.stdout
     rrd = tmp_path / "calib" / "camera.rrd"
     assert rrd.is_file() and rrd.stat().st_size > 0
@@ -276,6 +285,32 @@ def test_cli_writes_a_camera_file_and_a_recording(views_dir, tmp_path):
         pytest.skip(f"{RERUN} not found: recording not verified")
     verify = subprocess.run([str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=60)
     assert verify.returncode == 0, verify.stderr
+
+
+@pytest.mark.slow
+def test_progress_ends_at_the_count_the_summary_gives(views_dir, tmp_path):
+    # given 8 views as image files, and as a video showing each of them for 3 frames
+    folder = copy_views(views_dir, tmp_path / "shots", 8)
+    video = tmp_path / "shots.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (WIDTH, HEIGHT))
+    for path in sorted(folder.glob("*.png")):
+        for _ in range(3):
+            writer.write(cv2.imread(str(path)))
+    writer.release()
+    for source, frames in ((folder, 8), (video, 24)):
+        # when each is calibrated with its output piped (not a terminal)
+        result = run_cli([str(source), *BOARD_ARGS, "--out", f"{source.stem}/camera.yml"], tmp_path)
+        assert result.returncode == 0, result.stderr
+        # then the last progress line counts the frames the summary counts
+        counts = re.findall(r"^ar-anchor: considered (?:all )?(\d+)", result.stderr, re.MULTILINE)
+        summary = re.search(r"(\d+) view\(s\) considered", result.stdout)
+        assert counts and summary, (result.stderr, result.stdout)
+        assert int(counts[-1]) == int(summary.group(1)) == frames, (counts, summary.group(0))
+        # and the uncertainty's last progress line counts the calibrations the report used
+        runs = re.findall(r"^ar-anchor: uncertainty: (\d+)/(\d+)", result.stderr, re.MULTILINE)
+        used = re.search(r"spread over (\d+) calibrations on resampled views \(of 8,", result.stdout)
+        assert runs and used, (result.stderr, result.stdout)
+        assert runs[-1][0] == runs[-1][1] == used.group(1), (runs, used.group(0))
 
 
 # ======================================================================== view selection
@@ -410,6 +445,10 @@ def test_device_capture_keeps_distinct_views_until_max_views(views_dir):
     assert time.monotonic() - started < 20
     assert len(report.views) == 6
     assert sum("kept" in m for m in messages) == 6
+    # the capture's last line counts the frames the report counts
+    assert [m for m in messages if m.startswith("capture ended")] == [
+        f"capture ended: {report.considered} frames considered, 6/6 views"
+    ]
     frames = [v.frame for v in report.views]
     assert all(b - a >= 15 for a, b in zip(frames, frames[1:]))  # at least 0.5 s of capture time apart
     assert abs(report.camera.camera_matrix[0, 0] / TRUE_K[0, 0] - 1) < 0.02

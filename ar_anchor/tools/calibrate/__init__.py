@@ -30,11 +30,22 @@ Pipeline
    when corners stay near the centre), 28 % away from OpenCV's own calibration of them.
 6. **Outliers**: views whose RMS reprojection error exceeds ``max(3 x median, median + 0.5 px)`` are
    dropped, worst first, never below ``--min-views``, and the camera is calibrated once more.
-7. **Coverage**: an 8x6 grid of image cells; a warning when fewer than half hold a corner, when the
+7. **Uncertainty**: a bootstrap over views: 100 times (a fixed seed; at most 15 s), as many views as
+   were used are drawn with replacement and calibrated again; each parameter's standard deviation
+   over these fits, or OpenCV's own estimate when larger, is its reported ``+-``. OpenCV's estimate
+   alone assumes every corner's error is independent and is optimistic for real views (errors shared
+   by a view's corners: a board not quite flat, rolling shutter, blur); on 10-20 rendered views with
+   such errors it held the truth within 3 sigma for 50-59 % of fx fy cx cy (up to 13 sigma off), the
+   bootstrap's for 99-100 % (at most 3.1 sigma, RMS 1.0 sigma). One warning says when the
+   uncertainty itself is unreliable: fewer than 8 views, board orientations within 15 degrees of each
+   other (focal length and distance trade off), resampled fits failing or too few of them in time.
+8. **Coverage**: an 8x6 grid of image cells; a warning when fewer than half hold a corner, when the
    outer third of a side holds none, or when no corner reaches that side's outermost cells.
 
 Outputs: the OpenCV YAML camera file (``camera_matrix``, ``distortion_coefficients``,
-``image_width``, ``image_height``, ``rms``, ``date``, ``board``, ``views``, ``coverage``, ``model``),
+``image_width``, ``image_height``, ``rms``, ``date``, ``board``, ``views``, ``coverage``, ``model``,
+``std_intrinsics`` (fx fy cx cy k1 k2 p1 p2 k3, one standard deviation), ``std_intrinsics_method`` and,
+when it is unreliable, ``std_intrinsics_unreliable``),
 written atomically, and a rerun recording (entity tree below).
 
 Rerun entity tree (timelines ``view``: position in the selection, ``frame``: source frame index):
@@ -54,7 +65,15 @@ from __future__ import annotations
 from .command import run_calibrate
 from .gather import calibrate_source
 from .report import format_report, write_camera_yaml
-from .solve import CalibrationReport, CalibrationResult, Coverage, calibrate_views, coverage_of
+from .solve import (
+    CalibrationReport,
+    CalibrationResult,
+    Coverage,
+    Uncertainty,
+    bootstrap_uncertainty,
+    calibrate_views,
+    coverage_of,
+)
 from .views import CharucoSpec, Rejection, View, ViewDetector, edge_width_px, is_duplicate, select_views
 
 __all__ = [
@@ -63,8 +82,10 @@ __all__ = [
     "CharucoSpec",
     "Coverage",
     "Rejection",
+    "Uncertainty",
     "View",
     "ViewDetector",
+    "bootstrap_uncertainty",
     "calibrate_source",
     "calibrate_views",
     "coverage_of",

@@ -16,7 +16,16 @@ import numpy as np
 
 from ...errors import InputError, SourceError
 from ...sources.open import is_device
-from .solve import CalibrationReport, CalibrationResult, Coverage, calibrate_views, coverage_of
+from .solve import (
+    BOOTSTRAP_RESAMPLES,
+    CalibrationReport,
+    CalibrationResult,
+    Coverage,
+    Uncertainty,
+    bootstrap_uncertainty,
+    calibrate_views,
+    coverage_of,
+)
 from .views import CharucoSpec, OnlineSelector, Rejection, View, ViewDetector, reason_counts, select_views
 
 __all__ = ["CANDIDATES_PER_VIEW", "Progress", "calibrate_source", "quality_warnings"]
@@ -63,6 +72,9 @@ def _gather_files(
                 last_report = time.monotonic()
                 total = f"/{math.ceil(count / step)}" if count else ""
                 progress(f"considered {considered}{total} frames, board in {len(views)}")
+    if progress is not None:  # the last line counts what the report will: every frame considered
+        sampled = f" (one in {step})" if step > 1 else ""
+        progress(f"considered all {considered} frames{sampled}, board in {len(views)}")
     return views, rejections, considered, size, step
 
 
@@ -132,6 +144,8 @@ def _gather_device(
     except KeyboardInterrupt:
         if progress is not None:
             progress("capture stopped (Ctrl-C): calibrating with the views kept so far")
+    if progress is not None:
+        progress(f"capture ended: {considered} frames considered, {len(selector.kept)}/{max_views} views")
     return list(selector.kept), rejections, considered, size
 
 
@@ -149,12 +163,14 @@ def calibrate_source(
     progress: Progress | None = None,
     on_keep: Callable[[View, np.ndarray], None] | None = None,
     grabber: object | None = None,
+    resamples: int = BOOTSTRAP_RESAMPLES,
 ) -> CalibrationReport:
     """Calibrate a camera from the ChArUco views in ``source`` (folder, glob, video or device).
 
     ``previews``: keep a JPEG of each view (for the recording). ``progress``: called with one-line
     progress messages. ``grabber``: a device stand-in (tests); ``on_keep``: called for each view a
-    device keeps, with its frame.
+    device keeps, with its frame. ``resamples``: calibrations on resampled views for the uncertainty
+    (:func:`~.solve.bootstrap_uncertainty`).
     """
     if max_views < min_views:
         raise InputError(f"--max-views ({max_views}) must be at least --min-views ({min_views})")
@@ -184,6 +200,7 @@ def calibrate_source(
         log.log(logging.DEBUG if rejection.reason == "no board" else logging.INFO, "rejected %s", rejection)
     _refuse_unusable(source, spec, detector, views, kept, rejections, considered, min_views)
     result = calibrate_views(spec, kept, size, min_views=min_views)
+    uncertainty = bootstrap_uncertainty(spec, result, size, resamples=resamples, progress=progress)
     coverage = coverage_of(result.views, size)
     return CalibrationReport(
         source=str(source),
@@ -193,9 +210,10 @@ def calibrate_source(
         rejections=tuple(rejections),
         result=result,
         coverage=coverage,
-        warnings=tuple(quality_warnings(result, coverage)),
+        warnings=tuple(quality_warnings(result, coverage, uncertainty)),
         seconds=time.monotonic() - started,
         frame_step=step,
+        uncertainty=uncertainty,
     )
 
 
@@ -231,15 +249,23 @@ def _refuse_unusable(
         )
 
 
-def quality_warnings(result: CalibrationResult, coverage: Coverage) -> list[str]:
-    """The coverage's warnings, then a poorly constrained focal length and a high RMS error."""
+def quality_warnings(
+    result: CalibrationResult, coverage: Coverage, uncertainty: Uncertainty | None = None
+) -> list[str]:
+    """The coverage's warnings, then a poorly constrained focal length (by ``uncertainty`` when given,
+    else by OpenCV's estimate), why the uncertainty is not to be trusted, and a high RMS error."""
     warnings = list(coverage.warnings)
     fx, fy = result.camera.camera_matrix[0, 0], result.camera.camera_matrix[1, 1]
-    sfx, sfy = result.std[0], result.std[1]
+    sfx, sfy = (uncertainty.std if uncertainty is not None else result.std)[:2]
     if math.isfinite(sfx) and math.isfinite(sfy) and max(sfx / fx, sfy / fy) > 0.01:
         warnings.append(
             f"focal length poorly constrained (fx +- {sfx / fx:.1%}, fy +- {sfy / fy:.1%}): add views with the board "
             "tilted 20-50 degrees, near the image corners"
+        )
+    if uncertainty is not None and uncertainty.distrust:
+        warnings.append(
+            f"the uncertainty (+-) is itself unreliable: {'; '.join(uncertainty.distrust)}: take 10-20 sharp views "
+            "of the board tilted 20-50 degrees in different directions"
         )
     if result.rms > 1.0:
         warnings.append(f"RMS reprojection error {result.rms:.2f} px is high (expect < 0.5 px): check the board spec")

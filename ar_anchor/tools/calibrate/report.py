@@ -40,6 +40,7 @@ def write_camera_yaml(path: str | os.PathLike[str], report: CalibrationReport) -
                 views=len(result.views),
                 coverage=round(report.coverage.fraction, 4),
                 model=result.model,
+                **_uncertainty_keys(report),
             )
         except (cv2.error, SystemError, OSError) as err:
             raise OutputError(f"--out {path}: cannot write ({_first_line(err)})") from None
@@ -58,6 +59,21 @@ def write_camera_yaml(path: str | os.PathLike[str], report: CalibrationReport) -
             temporary.unlink(missing_ok=True)
 
 
+def _uncertainty_keys(report: CalibrationReport) -> dict[str, str | np.ndarray]:
+    """The camera file's uncertainty: ``std_intrinsics`` (fx fy cx cy k1 k2 p1 p2 k3, one standard
+    deviation, NaN for a parameter held fixed; OpenCV's ``stdDeviationsIntrinsics`` order) and how it
+    was estimated."""
+    uncertainty = report.uncertainty
+    std = uncertainty.std if uncertainty is not None else report.result.std
+    keys: dict[str, str | np.ndarray] = {"std_intrinsics": np.array(std, np.float64).reshape(1, -1)}
+    keys["std_intrinsics_method"] = (
+        uncertainty.describe() if uncertainty is not None else "OpenCV's estimate from the residuals"
+    )
+    if uncertainty is not None and uncertainty.distrust:
+        keys["std_intrinsics_unreliable"] = "; ".join(uncertainty.distrust)
+    return keys
+
+
 def _first_line(err: BaseException) -> str:
     lines = [line.strip() for line in str(err).splitlines() if line.strip()]
     return lines[-1] if lines else type(err).__name__
@@ -68,7 +84,8 @@ def format_report(report: CalibrationReport) -> str:
     result = report.result
     camera = report.camera
     k = camera.camera_matrix
-    std = result.std
+    uncertainty = report.uncertainty
+    std = uncertainty.std if uncertainty is not None else result.std
     rejected = report.all_rejections
     lines = [
         f"calibrate {report.source}: {report.considered} view(s) considered"
@@ -97,6 +114,16 @@ def format_report(report: CalibrationReport) -> str:
         "distortion "
         + "  ".join(f"{n} {dist[i]:+.5f}" for i, n in enumerate(names) if i < dist.size)
         + f"  ({result.model})"
+    )
+    opencv = result.std
+    lines.append(
+        "  +- is one standard deviation: "
+        + (uncertainty.describe(timed=True) if uncertainty is not None else "OpenCV's estimate from the residuals")
+        + (
+            f" (OpenCV's alone: fx +-{opencv[0]:.2f} fy +-{opencv[1]:.2f} px)"
+            if uncertainty is not None and uncertainty.ran > uncertainty.failed + 1
+            else ""
+        )
     )
     errors = np.asarray(result.errors_px)
     worst = int(np.argmax(errors))

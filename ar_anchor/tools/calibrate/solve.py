@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -22,8 +24,11 @@ __all__ = [
     "CalibrationReport",
     "CalibrationResult",
     "Coverage",
+    "Uncertainty",
+    "bootstrap_uncertainty",
     "calibrate_views",
     "coverage_of",
+    "orientation_spread_deg",
     "radial_folds",
 ]
 
@@ -45,7 +50,10 @@ class CalibrationResult:
     views : the views used by the final fit; ``errors_px`` their RMS reprojection errors (same order).
     first_views, first_errors_px : the first fit's views and errors (before outliers were dropped).
     dropped : the outlier views (a :class:`Rejection` each).
-    std : standard deviations of fx, fy, cx, cy, k1, k2, p1, p2, k3 (NaN when unknown).
+    std : OpenCV's standard deviations of fx, fy, cx, cy, k1, k2, p1, p2, k3 (NaN when unknown), from
+        the residuals alone as if every corner's error were independent: optimistic for real views
+        (see :func:`bootstrap_uncertainty` for one that covers reality).
+    orientation_spread_deg : the largest angle between two used views' board normals.
     """
 
     camera: CameraModel
@@ -60,6 +68,7 @@ class CalibrationResult:
     std: tuple[float, ...]
     model: str
     reprojected: tuple[np.ndarray, ...] = field(default=(), repr=False)
+    orientation_spread_deg: float = 0.0
 
 
 def _points(board: cv2.aruco.CharucoBoard, views: Sequence[View]) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -92,11 +101,41 @@ def radial_folds(camera_matrix: np.ndarray, dist: np.ndarray, image_size: tuple[
     return bool(np.any(slope[: beyond[0] + 1] <= 0))
 
 
+class _Fit(NamedTuple):
+    """One ``calibrateCameraExtended`` run's outcome."""
+
+    rms: float
+    matrix: np.ndarray
+    dist: np.ndarray
+    errors: np.ndarray  # (views,) RMS reprojection error of each view, px
+    std: np.ndarray  # OpenCV's stdDeviationsIntrinsics (fx fy cx cy k1 k2 p1 p2 k3 ...)
+    reprojected: list[np.ndarray]
+    normals: np.ndarray  # (views, 3) the board's normal in the camera frame, unit vectors
+
+
+def _plausible(rms: float, matrix: np.ndarray, dist: np.ndarray, image_size: tuple[int, int]) -> bool:
+    """A finite camera with positive focal lengths and its principal point inside the image."""
+    return bool(
+        np.isfinite(rms)
+        and np.all(np.isfinite(matrix))
+        and np.all(np.isfinite(dist))
+        and matrix[0, 0] > 0
+        and matrix[1, 1] > 0
+        and -0.5 <= matrix[0, 2] <= image_size[0] - 0.5
+        and -0.5 <= matrix[1, 2] <= image_size[1] - 0.5
+    )
+
+
 def _fit(
-    board: cv2.aruco.CharucoBoard, views: Sequence[View], image_size: tuple[int, int], flags: int
-) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]] | None:
-    """One ``calibrateCameraExtended`` run: (rms, K, dist, per-view errors, std, reprojections) or None."""
-    objects, images = _points(board, views)
+    board: cv2.aruco.CharucoBoard,
+    views: Sequence[View],
+    image_size: tuple[int, int],
+    flags: int,
+    points: tuple[list[np.ndarray], list[np.ndarray]] | None = None,
+) -> _Fit | None:
+    """One ``calibrateCameraExtended`` run (on ``points`` when given, else on the views'), or None
+    when it fails or gives no plausible camera."""
+    objects, images = points if points is not None else _points(board, views)
     try:
         rms, matrix, dist, rvecs, tvecs, std, _std_extrinsics, per_view = cv2.calibrateCameraExtended(
             objects, images, image_size, None, None, flags=flags, criteria=_CRITERIA
@@ -106,31 +145,24 @@ def _fit(
         return None
     matrix, dist = np.asarray(matrix, np.float64), np.asarray(dist, np.float64).reshape(-1)
     per_view = np.asarray(per_view, np.float64).reshape(-1)
-    if not (
-        np.isfinite(rms)
-        and np.all(np.isfinite(matrix))
-        and np.all(np.isfinite(dist))
-        and np.all(np.isfinite(per_view))
-        and matrix[0, 0] > 0
-        and matrix[1, 1] > 0
-        and -0.5 <= matrix[0, 2] <= image_size[0] - 0.5
-        and -0.5 <= matrix[1, 2] <= image_size[1] - 0.5
-    ):
+    if not (_plausible(rms, matrix, dist, image_size) and np.all(np.isfinite(per_view))):
         log.info("calibration with flags %d gave an unusable result (rms %s, K %s)", flags, rms, matrix.tolist())
         return None
     reprojected = [
         cv2.projectPoints(obj, rvec, tvec, matrix, dist)[0].reshape(-1, 2)
         for obj, rvec, tvec in zip(objects, rvecs, tvecs)
     ]
-    return float(rms), matrix, dist, per_view, np.asarray(std, np.float64).reshape(-1), reprojected
+    normals = np.array([cv2.Rodrigues(rvec)[0][:, 2] for rvec in rvecs], np.float64).reshape(-1, 3)
+    std = np.asarray(std, np.float64).reshape(-1)
+    return _Fit(float(rms), matrix, dist, per_view, std, reprojected, normals)
 
 
 def _calibrate_once(
     board: cv2.aruco.CharucoBoard, views: Sequence[View], image_size: tuple[int, int]
-) -> tuple[tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]], int, str]:
+) -> tuple[_Fit, int, str]:
     """The 5-parameter model, or k3 fixed when that fit fails or folds over inside the image."""
     full = _fit(board, views, image_size, 0)
-    if full is not None and not radial_folds(full[1], full[2], image_size):
+    if full is not None and not radial_folds(full.matrix, full.dist, image_size):
         return full, 0, "k1 k2 p1 p2 k3"
     reason = "failed" if full is None else "folds over inside the image"
     log.warning("the 5-parameter distortion fit %s: calibrating again with k3 fixed at 0", reason)
@@ -143,6 +175,17 @@ def _calibrate_once(
     return fixed, cv2.CALIB_FIX_K3, "k1 k2 p1 p2 (k3 fixed at 0)"
 
 
+def orientation_spread_deg(normals: np.ndarray) -> float:
+    """The largest angle between two views' board normals, in degrees (0 for one view): how different
+    the board's orientations are. Views of parallel boards cannot separate the focal length from the
+    distance, however many there are."""
+    normals = np.asarray(normals, np.float64).reshape(-1, 3)
+    if len(normals) < 2:
+        return 0.0
+    cosines = np.clip(normals @ normals.T, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cosines.min())))
+
+
 def calibrate_views(
     spec: CharucoSpec, views: Sequence[View], image_size: tuple[int, int], *, min_views: int = 6
 ) -> CalibrationResult:
@@ -150,8 +193,9 @@ def calibrate_views(
     if len(views) < max(min_views, 1):
         raise InputError(f"{len(views)} usable view(s), --min-views is {min_views}")
     board = spec.build()
-    (rms, matrix, dist, errors, std, reprojected), flags, model = _calibrate_once(board, views, image_size)
-    first = (tuple(views), tuple(float(e) for e in errors), rms)
+    fit, flags, model = _calibrate_once(board, views, image_size)
+    errors = fit.errors
+    first = (tuple(views), tuple(float(e) for e in errors), fit.rms)
     median = float(np.median(errors))
     limit = max(OUTLIER_FACTOR * median, median + OUTLIER_MARGIN_PX)
     worst_first = sorted((i for i in range(len(views)) if errors[i] > limit), key=lambda i: -errors[i])
@@ -167,7 +211,8 @@ def calibrate_views(
         )
     if drop:
         views = [v for i, v in enumerate(views) if i not in set(drop)]
-        (rms, matrix, dist, errors, std, reprojected), flags, model = _calibrate_once(board, views, image_size)
+        fit, flags, model = _calibrate_once(board, views, image_size)
+    rms, matrix, dist, errors, std = fit.rms, fit.matrix, fit.dist, fit.errors, fit.std
     padded = np.full(9, np.nan)
     padded[: min(9, std.size)] = std[:9]
     if flags & cv2.CALIB_FIX_K3:
@@ -185,7 +230,170 @@ def calibrate_views(
         flags=flags,
         std=tuple(float(s) for s in padded),
         model=model,
-        reprojected=tuple(reprojected),
+        reprojected=tuple(fit.reprojected),
+        orientation_spread_deg=orientation_spread_deg(fit.normals),
+    )
+
+
+# ---------------------------------------------------------------------------- uncertainty
+
+BOOTSTRAP_RESAMPLES = 100  # calibrations on views drawn with replacement ...
+BOOTSTRAP_BUDGET_S = 15.0  # ... stopped early after this long (the report says how many ran)
+BOOTSTRAP_SEED = 0  # the same views give the same resamples, hence the same uncertainty
+MIN_TRUSTED_VIEWS = 8  # fewer views: their spread says little about the truth
+MIN_ORIENTATION_SPREAD_DEG = 15.0  # board normals all closer than this: focal length and distance trade off
+MAX_FAILED_FRACTION = 0.1  # more resampled calibrations failing: the views barely constrain the camera
+MIN_RESAMPLES = 20  # fewer ran (time budget, failures): the spread itself is a guess
+PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """How far the calibration may be from the truth: one standard deviation per parameter.
+
+    std : of fx, fy, cx, cy (px), k1, k2, p1, p2, k3 (NaN for a parameter held fixed): per parameter the
+        larger of ``bootstrap_std`` and OpenCV's own estimate (:attr:`CalibrationResult.std`).
+    bootstrap_std : the standard deviation of the parameters over calibrations on views drawn with
+        replacement from the ``n`` used ones, times ``sqrt(n / (n - 1))`` (the plug-in bootstrap's bias for
+        n samples; NaN when fewer than two calibrations succeeded).
+    planned, ran, failed : resampled calibrations wanted, run (fewer when the time budget ran out), and
+        failed (no plausible camera); ``views`` the views resampled.
+    distrust : the reasons not to trust the uncertainty itself (empty: none known).
+    """
+
+    std: tuple[float, ...]
+    bootstrap_std: tuple[float, ...]
+    planned: int
+    ran: int
+    failed: int
+    views: int
+    seconds: float
+    distrust: tuple[str, ...]
+
+    def describe(self, *, timed: bool = False) -> str:
+        """One line: how the uncertainty was estimated (``timed``: with the bootstrap's duration)."""
+        if self.ran - self.failed < 2:
+            why = (
+                f"{self.views} view(s): too few to resample"
+                if not self.planned
+                else f"{self.ran - self.failed} of {self.planned} calibrations on resampled views succeeded"
+            )
+            return f"OpenCV's estimate from the residuals ({why})"
+        duration = f", {self.seconds:.1f} s" if timed else ""
+        return (
+            f"the larger of the spread over {self.ran - self.failed} calibrations on resampled views "
+            f"(of {self.views}{duration}) and OpenCV's estimate from the residuals"
+        )
+
+
+def _resample(rng: np.random.Generator, count: int) -> np.ndarray:
+    """``count`` view indices drawn with replacement, naming at least three distinct views (two views
+    of a plane leave the calibration underdetermined: such draws are drawn again)."""
+    need = min(3, count)
+    while True:
+        picks = rng.integers(0, count, count)
+        if len(np.unique(picks)) >= need:
+            return np.sort(picks)
+
+
+def _parameters(matrix: np.ndarray, dist: np.ndarray, flags: int) -> np.ndarray:
+    values = np.full(len(PARAMETERS), np.nan)
+    values[:4] = matrix[0, 0], matrix[1, 1], matrix[0, 2], matrix[1, 2]
+    coefficients = dist.reshape(-1)[:5]
+    values[4 : 4 + coefficients.size] = coefficients
+    if flags & cv2.CALIB_FIX_K3:
+        values[8] = np.nan
+    return values
+
+
+def bootstrap_uncertainty(
+    spec: CharucoSpec,
+    result: CalibrationResult,
+    image_size: tuple[int, int],
+    *,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    budget_s: float = BOOTSTRAP_BUDGET_S,
+    seed: int = BOOTSTRAP_SEED,
+    progress: Callable[[str], None] | None = None,
+) -> Uncertainty:
+    """The calibration's uncertainty from a bootstrap over its views.
+
+    ``resamples`` times, as many views as were used are drawn with replacement (a fixed ``seed``: the
+    same views give the same answer) and the camera is calibrated on them with the same model; the
+    standard deviation of each parameter over these calibrations is its uncertainty. Unlike OpenCV's
+    estimate, which treats every corner's error as independent, it counts what varies from view to
+    view (a board not quite flat, rolling shutter, blur, a view that pulls the focal length) and how
+    much the result depends on which views were taken. Stops after ``budget_s`` seconds; ``progress``
+    gets a line every two seconds and one at the end.
+    """
+    started = time.monotonic()
+    views = result.views
+    count = len(views)
+    board = spec.build()
+    objects, images = _points(board, views)
+    rng = np.random.default_rng(seed)
+    samples: list[np.ndarray] = []
+    ran = failed = 0
+    planned = resamples if count >= 3 else 0
+    last_report = started
+    for _ in range(planned):
+        if time.monotonic() - started >= budget_s:
+            break
+        picks = _resample(rng, count)
+        ran += 1
+        try:
+            rms, matrix, dist, _rvecs, _tvecs = cv2.calibrateCamera(
+                [objects[i] for i in picks],
+                [images[i] for i in picks],
+                image_size,
+                None,
+                None,
+                flags=result.flags,
+                criteria=_CRITERIA,
+            )
+        except cv2.error:
+            failed += 1
+            continue
+        matrix, dist = np.asarray(matrix, np.float64), np.asarray(dist, np.float64).reshape(-1)
+        if not _plausible(rms, matrix, dist, image_size):
+            failed += 1
+            continue
+        samples.append(_parameters(matrix, dist, result.flags))
+        if progress is not None and time.monotonic() - last_report > 2.0:
+            last_report = time.monotonic()
+            progress(f"uncertainty: {ran}/{planned} resampled calibrations ({last_report - started:.0f} s)")
+    seconds = time.monotonic() - started
+    if progress is not None and planned:
+        stopped = f", stopped at the {budget_s:g} s budget" if ran < planned else ""
+        progress(f"uncertainty: {ran}/{planned} resampled calibrations of {count} views ({seconds:.1f} s{stopped})")
+    bootstrap = np.full(len(PARAMETERS), np.nan)
+    if len(samples) >= 2:  # resampling n views underestimates the variance by (n - 1) / n
+        bootstrap = np.std(samples, axis=0, ddof=1) * math.sqrt(count / (count - 1))
+    opencv = np.asarray(result.std, np.float64)
+    std = np.where(np.isnan(bootstrap), opencv, np.fmax(bootstrap, opencv))
+    if result.flags & cv2.CALIB_FIX_K3:
+        std[8] = np.nan
+    distrust = []
+    if count < MIN_TRUSTED_VIEWS:
+        distrust.append(f"only {count} view(s) (at least {MIN_TRUSTED_VIEWS} are needed to estimate it)")
+    if count >= 2 and result.orientation_spread_deg < MIN_ORIENTATION_SPREAD_DEG:
+        distrust.append(
+            f"the board's orientations differ by at most {result.orientation_spread_deg:.0f} degrees "
+            f"(less than {MIN_ORIENTATION_SPREAD_DEG:g})"
+        )
+    if ran and failed > MAX_FAILED_FRACTION * ran:
+        distrust.append(f"{failed} of {ran} calibrations on resampled views failed")
+    if planned and ran - failed < MIN_RESAMPLES:
+        distrust.append(f"only {ran - failed} calibrations on resampled views succeeded in {seconds:.0f} s")
+    return Uncertainty(
+        std=tuple(float(v) for v in std),
+        bootstrap_std=tuple(float(v) for v in bootstrap),
+        planned=planned,
+        ran=ran,
+        failed=failed,
+        views=count,
+        seconds=seconds,
+        distrust=tuple(distrust),
     )
 
 
@@ -275,6 +483,7 @@ class CalibrationReport:
     warnings: tuple[str, ...]
     seconds: float
     frame_step: int = 1
+    uncertainty: Uncertainty | None = None
 
     @property
     def camera(self) -> CameraModel:
