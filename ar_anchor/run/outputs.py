@@ -379,6 +379,7 @@ class _TargetStats:
     measured_in_view: int = 0
     rotation_errors_deg: list[float] = field(default_factory=list)
     translation_errors_pct: list[float] = field(default_factory=list)
+    member_frames: dict[str, int] = field(default_factory=dict)  # a marker: board -> frames drawn as its part
 
 
 class RunSummary:
@@ -409,9 +410,12 @@ class RunSummary:
             if stats.causal_states is None:
                 stats.causal_states = {str(state): 0 for state in TrackState}
             stats.causal_states[target.state] += 1
+        members = result.board_members()
         for name, target in result.targets.items():
             stats = self.targets.setdefault(name, _TargetStats())
             stats.states[target.state] += 1
+            if name in members:
+                stats.member_frames[members[name]] = stats.member_frames.get(members[name], 0) + 1
             if not target.measured:
                 continue
             stats.measured += 1
@@ -439,6 +443,8 @@ class RunSummary:
             }
             if stats.causal_states is not None:
                 entry["causal_states"] = dict(stats.causal_states)
+            if stats.member_frames:  # frames this marker was drawn as part of a board (FrameResult.board_members)
+                entry["member_of"] = dict(stats.member_frames)
             if self.has_truth:
                 entry["frames_in_view"] = stats.in_view
                 entry["detection_rate_in_view"] = stats.measured_in_view / stats.in_view if stats.in_view else None
