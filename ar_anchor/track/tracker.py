@@ -120,10 +120,10 @@ class FrameResult:
         own row in poses.csv; the overlay draws it as part of its board (no label of its own) and the run's
         summary folds it under the board."""
         members: dict[TargetId, TargetId] = {}
-        for name, target in self.targets.items():
-            if name.is_board:
+        for target in self.targets.values():
+            if target.target.is_board:
                 for marker_id in target.markers_used:
-                    members.setdefault(TargetId.marker(marker_id), name)
+                    members.setdefault(TargetId.marker(marker_id), target.target)
         return members
 
 
