@@ -125,8 +125,10 @@ FEW_FRAMES = 30  # a run of at most this many frames (or of stills) says where e
 
 
 def format_summary(summary: dict[str, Any]) -> str:
-    """The run's summary as a small fixed-width table, its columns explained below it; for a run of a few
-    frames (or of independent stills) where each target was (:func:`format_where`)."""
+    """The run's summary as a small fixed-width table, its columns explained below it: one row per target, the
+    markers drawn as part of a board folded into its row (``board:charuco (17 markers)``: see
+    :func:`_folded_members`); for a run of a few frames (or of independent stills) where each target was
+    (:func:`format_where`)."""
     fps = summary.get("fps")
     lines = [
         f"{summary['frames']} frames in {summary['wall_time_s']:.1f} s ({fps:.1f} fps)"
@@ -135,16 +137,20 @@ def format_summary(summary: dict[str, Any]) -> str:
         _markers_line(summary),
     ]
     truth = summary.get("ground_truth")
-    header = f"{'target':<12} {'detected':>9} {'tracked/ambig/gap':>18}"
+    folded = _folded_members(summary["targets"])
+    shown = {name: entry for name, entry in summary["targets"].items() if name not in folded}
+    names = {name: _row_name(name, folded) for name in shown}
+    width = max([12, *(len(text) for text in names.values())])
+    header = f"{'target':<{width}} {'detected':>9} {'tracked/ambig/gap':>18}"
     if truth:
         header += f" {'in view':>8} {'rate':>6} {'rot med/p95 deg':>17} {'trans med/p95 %':>17}"
     lines.append(header)
     lines.append("-" * len(header))
-    for name, entry in summary["targets"].items():
+    for name, entry in shown.items():
         states = entry.get("states", {})
         gap = states.get("predicted", 0) + states.get("interpolated", 0)  # (replay: interpolated, live: predicted)
         state_text = f"{states.get('tracked', 0)}/{states.get('ambiguous', 0)}/{gap}"
-        row = f"{printable(name):<12} {entry['frames_measured']:>9} {state_text:>18}"
+        row = f"{names[name]:<{width}} {entry['frames_measured']:>9} {state_text:>18}"
         if truth:
             rate = entry.get("detection_rate_in_view")
             rot, trans = entry["rotation_error_deg"], entry["translation_error_pct"]
@@ -210,16 +216,20 @@ def format_where(summary: dict[str, Any]) -> list[str]:
     """Where each target was: its last state, its distance from the camera (m) and its tilt to the line of sight
     (deg; 0 faces the camera), the median over the frames it had a pose in (the value itself for one frame)."""
     frames = summary["frames"]
-    header = f"{'target':<12} {'last state':<11} {'distance m':>10} {'tilt deg':>9}  seen in"
+    folded = _folded_members(summary["targets"])
+    shown = {name: entry for name, entry in summary["targets"].items() if name not in folded}
+    names = {name: _row_name(name, folded) for name in shown}
+    width = max([12, *(len(text) for text in names.values())])
+    header = f"{'target':<{width}} {'last state':<11} {'distance m':>10} {'tilt deg':>9}  seen in"
     lines = [header, "-" * len(header)]
-    for name, entry in summary["targets"].items():
+    for name, entry in shown.items():
         distance = (entry.get("distance_m") or {}).get("median")
         tilt = (entry.get("tilt_deg") or {}).get("median")
         if distance is None:
             continue
         tilt_text = "-" if tilt is None else f"{tilt:.1f}"
         lines.append(
-            f"{printable(name):<12} {entry.get('last_state', ''):<11} {distance:>10.3f} {tilt_text:>9}  "
+            f"{names[name]:<{width}} {entry.get('last_state', ''):<11} {distance:>10.3f} {tilt_text:>9}  "
             f"{entry['frames_measured']} of {frames} frames"
         )
     if len(lines) == 2:
@@ -230,3 +240,25 @@ def format_where(summary: dict[str, Any]) -> list[str]:
         "  tilt = angle between the target's face normal and the line of sight (0 = facing the camera, 90 = edge-on)",
     ]
     return lines
+
+
+def _folded_members(targets: dict[str, Any]) -> dict[str, str]:
+    """The markers folded under a board in the table: marker -> board, for every marker drawn as part of one
+    board (summary.json's ``member_of``) in each of its frames, when that board has a row. (Their own rows
+    stay in poses.csv and summary.json; a marker also seen on its own, or in two boards, keeps its row.)"""
+    folded = {}
+    for name, entry in targets.items():
+        member_of = entry.get("member_of") or {}
+        rows = sum(entry.get("states", {}).values())
+        if len(member_of) == 1:
+            board, frames = next(iter(member_of.items()))
+            if frames == rows and board in targets:
+                folded[name] = board
+    return folded
+
+
+def _row_name(name: str, folded: dict[str, str]) -> str:
+    """A target's name in the table; a board's with how many markers are folded under it."""
+    count = sum(1 for board in folded.values() if board == name)
+    marker_s = "marker" if count == 1 else "markers"
+    return printable(name) + (f" ({count} {marker_s})" if count else "")

@@ -22,7 +22,8 @@ How a frame is drawn
 
 The tracker's state shows: ``tracked`` targets are drawn as configured, ``ambiguous`` ones at
 half opacity with a label, ``predicted`` ones greyed and faint, so users see when the tracker is
-unsure.
+unsure. A marker a board's pose was solved from (:meth:`FrameResult.board_members`) is part of that board:
+the board's label tells the state, the marker gets none of its own.
 """
 
 from __future__ import annotations
@@ -198,12 +199,13 @@ class OverlayRenderer:
         facets: list[_Facet] = []
         axes: list[tuple[np.ndarray, float, TargetResult]] = []
         labels: list[tuple[str, TargetResult]] = []
-        for target in result.targets.values():
+        members = result.board_members()  # drawn as part of their board: its label says its state, theirs none
+        for name, target in result.targets.items():
             style = STATE_STYLE[target.state]
             for placed in self.models_for(target, camera.has_distortion):
                 facets.extend(_facets(placed, target, camera, style))
             axes.extend((matrix, length, target) for matrix, length in self._axes_for(target))
-            if style[2]:
+            if style[2] and name not in members:
                 labels.append((style[2], target))
         out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
         if facets:

@@ -383,6 +383,7 @@ class _TargetStats:
     distance_m: array.array = field(default_factory=lambda: array.array("d"))  # each measured frame's
     tilt_deg: array.array = field(default_factory=lambda: array.array("d"))
     last_state: str = ""  # the state of the last frame it was measured in
+    member_frames: dict[str, int] = field(default_factory=dict)  # a marker: board -> frames drawn as its part
 
 
 def distance_and_tilt(pose: Pose) -> tuple[float, float]:
@@ -448,9 +449,12 @@ class RunSummary:
             if stats.causal_states is None:
                 stats.causal_states = {str(state): 0 for state in TrackState}
             stats.causal_states[target.state] += 1
+        members = result.board_members()
         for name, target in result.targets.items():
             stats = self.targets.setdefault(name, _TargetStats())
             stats.states[target.state] += 1
+            if name in members:
+                stats.member_frames[members[name]] = stats.member_frames.get(members[name], 0) + 1
             if not target.measured:
                 continue
             stats.measured += 1
@@ -483,6 +487,8 @@ class RunSummary:
             }
             if stats.causal_states is not None:
                 entry["causal_states"] = dict(stats.causal_states)
+            if stats.member_frames:  # frames this marker was drawn as part of a board (FrameResult.board_members)
+                entry["member_of"] = dict(stats.member_frames)
             if self.has_truth:
                 entry["frames_in_view"] = stats.in_view
                 entry["detection_rate_in_view"] = stats.measured_in_view / stats.in_view if stats.in_view else None

@@ -113,6 +113,19 @@ class FrameResult:
     # learned rigid groups (``[groups] learn``): the layouts members may follow this frame (GroupLearner.layouts)
     groups: dict[TargetId, GroupLayout] = field(default_factory=dict)
 
+    def board_members(self) -> dict[TargetId, TargetId]:
+        """Each marker drawn as part of a board this frame -> that board (a configured board or a learned
+        group, in any state it is drawn in): the markers the board's pose was solved from
+        (:attr:`TargetResult.markers_used`; a marker the board rejected is not one). Such a marker keeps its
+        own row in poses.csv; the overlay draws it as part of its board (no label of its own) and the run's
+        summary folds it under the board."""
+        members: dict[TargetId, TargetId] = {}
+        for target in self.targets.values():
+            if target.target.is_board:
+                for marker_id in target.markers_used:
+                    members.setdefault(TargetId.marker(marker_id), target.target)
+        return members
+
 
 @dataclass(frozen=True)
 class DetectedFrame:

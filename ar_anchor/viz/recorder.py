@@ -97,6 +97,7 @@ _STATE_COLOURS = {
     TrackState.INTERPOLATED: (90, 200, 230),
 }
 _FAILED_COLOUR = (255, 60, 60)
+_MEMBER_RADIUS = 0.5  # the outline of a marker drawn as part of its board (FrameResult.board_members)
 _CAUSAL_COLOURS = [(255, 120, 120, 160), (120, 255, 120, 160), (120, 120, 255, 160)]  # x, y, z: pale
 _BRANCH_COLOURS = np.array([(90, 200, 255, 90), (255, 140, 60, 90)], np.uint8)  # the filter's branch 0, 1
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
@@ -347,19 +348,30 @@ class RerunRecorder:
 
     def _log_detections(self, result: FrameResult, scale: float) -> None:
         """The detected markers' outlines (coloured by their target's state) and ids, their corners, and
-        each board's inlier and outlier corners, on the image (its pixels: distorted, at ``scale``)."""
-        colours, labels = [], []
+        each board's inlier and outlier corners, on the image (its pixels: distorted, at ``scale``). A marker
+        drawn as part of a board (:meth:`FrameResult.board_members`) is outlined thinly in the board's state
+        colour, without an id: the board is the target there."""
+        colours, labels, radii = [], [], []
         failed = {f.marker_id for f in result.failures}
+        members = result.board_members()
         for marker_id in result.detections.ids.tolist():
-            target = result.targets.get(TargetId.marker(marker_id))
+            name = TargetId.marker(marker_id)
+            board = members.get(name)
+            if board is not None:  # part of a board: thin, in the board's colour, no label of its own
+                colours.append(_STATE_COLOURS[result.targets[board].state])
+                labels.append("")
+                radii.append(_MEMBER_RADIUS)
+                continue
+            target = result.targets.get(name)
             colour = (
                 _STATE_COLOURS[target.state] if target else (_FAILED_COLOUR if marker_id in failed else (160, 160, 160))
             )
             colours.append(colour)
             labels.append(str(marker_id))
+            radii.append(1.0)
         quads = np.asarray(result.detections.corners, np.float64).reshape(-1, 4, 2)
         strips = (np.concatenate([quads, quads[:, :1]], axis=1) + 0.5) * scale  # (N, 5, 2), one array
-        self.recording.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=[1.0]))
+        self.recording.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=radii))
         corners = np.asarray(result.detections.corners.reshape(-1, 2), np.float64)
         self.recording.image_points(f"{IMAGE}/corners", corners, radius=1.5, colours=[(255, 0, 255)], scale=scale)
         for name, target in result.targets.items():

@@ -12,10 +12,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...config import FilterConfig
+from ...geometry import angle_between_deg
 from ..pose import PoseHypothesis
 from .noise import CornerNoise
 
-__all__ = ["FlipEvidence", "TrackEvent", "decisive", "margin_scale", "raw_pick"]
+__all__ = [
+    "AGREE_DEG",
+    "FlipEvidence",
+    "TrackEvent",
+    "decided_alone",
+    "decisive",
+    "margin_scale",
+    "raw_pick",
+    "solutions_agree",
+]
 
 
 @dataclass(frozen=True)
@@ -36,18 +46,39 @@ def margin_scale(points: int) -> float:
 def decisive(better_px: float, worse_px: float, config: FilterConfig, sigma_px: float, scale: float = 1.0) -> bool:
     """Does one frame alone decide between two solutions with these RMS reprojection errors: the worse
     one ``decisive_ratio`` times the better's and worse by ``decisive_sigmas`` corner-noise standard
-    deviations ``sigma_px``, and at least by ``decisive_px`` (times ``scale``: a board's margin shrinks
-    with its number of points)?"""
-    floor = max(config.decisive_px * scale, config.decisive_sigmas * sigma_px)
-    return worse_px - better_px >= floor and worse_px >= config.decisive_ratio * better_px
+    deviations ``sigma_px``, and at least by ``decisive_px``? ``scale`` (:func:`margin_scale`, 1 for one
+    marker's four corners) shrinks every margin of a board with the square root of its points: the floor
+    and the ratio's excess over 1. An RMS over many points measures the difference that finely, so a
+    49-corner ChArUco board's flipped solution is decisively worse at 1.6 times the error and 0.29 of
+    the floor, where a lone marker's must be 3 times worse."""
+    floor = max(config.decisive_px, config.decisive_sigmas * sigma_px) * scale
+    ratio = 1.0 + (config.decisive_ratio - 1.0) * scale
+    return worse_px - better_px >= floor and worse_px >= ratio * better_px
+
+
+AGREE_DEG = 2.0  # a board's two solutions this close are one pose as far as the flip goes (either is right)
+
+
+def solutions_agree(hypotheses: Sequence[PoseHypothesis], points: int) -> bool:
+    """Are a board's (more than four points) two solutions within :data:`AGREE_DEG` of each other? A
+    board seen nearly face-on can keep a second solution a degree or two from the first: not a flip to
+    resolve, since either pose is right. (A lone marker's are not judged so: its doubt is settled by
+    evidence over time, the filter's ``close_call``.)"""
+    if points <= 4 or len(hypotheses) < 2:
+        return False
+    return angle_between_deg(hypotheses[0].pose.rotation, hypotheses[1].pose.rotation) <= AGREE_DEG
 
 
 def decided_alone(hypotheses: Sequence[PoseHypothesis], config: FilterConfig, points: int = 4) -> bool:
     r"""Does this frame alone decide the planar flip between its solutions (lower error first): one valid
     solution, or the other :func:`decisive`\ ly worse, with the frame's own noise floor (the better error
-    times sqrt 2, at least ``corner_noise_px``) and the margins of ``points`` points (:func:`margin_scale`)?"""
+    times sqrt 2, at least ``corner_noise_px``) and the margins of ``points`` points (:func:`margin_scale`)?
+    A board (more than four points) is decided by its own geometry: also when its two solutions agree
+    (:func:`solutions_agree`)."""
     if len(hypotheses) < 2:
         return len(hypotheses) == 1
+    if solutions_agree(hypotheses, points):
+        return True
     better, worse = hypotheses[0].reproj_px, hypotheses[1].reproj_px
     sigma = max(config.corner_noise_px, better * math.sqrt(2.0))
     return decisive(better, worse, config, sigma, margin_scale(points))
@@ -116,8 +147,10 @@ class FlipEvidence:
         branch this frame alone vouches for (see :meth:`_verdict`), if any."""
         if not doubtful:
             self._add(assigned, timestamp_ns)
-        self._decide(events, frames)
         decided, lean = self._verdict(assigned)
+        self._decide(events, frames)
+        if self.committed is None and decided is not None and not doubtful and self._board:
+            self._commit_alone(decided, assigned, frames, events)
         if self.committed is not None:
             self._weigh(decided, lean, events)
         return decided
@@ -186,6 +219,31 @@ class FlipEvidence:
     def _margin_scale(self) -> float:
         return margin_scale(len(self.noise.points))
 
+    @property
+    def _board(self) -> bool:
+        """Is this a board's track (more than one marker's four points)? Its own geometry decides its flip."""
+        return len(self.noise.points) > 4
+
+    def _commit_alone(
+        self, branch: int, assigned: list[PoseHypothesis | None], frames: int, events: list[TrackEvent]
+    ) -> None:
+        """An undecided board's frame that alone decides (:meth:`_verdict`: the only valid solution, or the
+        other decisively worse at the board's margins) commits to it: the board's own points settle the flip,
+        as :func:`decided_alone` says of a still. (A lone marker's four corners wait for the evidence.)"""
+        self.committed = branch
+        chosen, other = assigned[branch], assigned[1 - branch]
+        assert chosen is not None
+        why = (
+            "the other solution failed validation"
+            if other is None
+            else f"the other solution reprojects {other.reproj_px:.3f} px, this one {chosen.reproj_px:.3f} px"
+        )
+        events.append(
+            TrackEvent(
+                "commit", f"committed to branch {branch} after {frames} frame(s): the board decides alone ({why})"
+            )
+        )
+
     def _decide(self, events: list[TrackEvent], frames: int) -> None:
         cfg = self.config
         if self.committed is None:
@@ -223,12 +281,16 @@ class FlipEvidence:
         """What this frame alone says: the branch it vouches for (the only solution, or the one the other
         reprojects ``decisive_ratio`` times and ``decisive_sigmas`` corner-noise standard deviations, at
         least ``decisive_px``, worse), and the branch it leans to (the other reprojects twice as badly and
-        worse by more than the decision margin). Either is None when the frame says nothing."""
+        worse by more than the decision margin). Either is None when the frame says nothing. A board's margins
+        shrink with its points (:func:`decisive`), and its two solutions that agree (:func:`solutions_agree`)
+        decide for the better one."""
         cfg = self.config
         if assigned[0] is None or assigned[1] is None:
             only = None if assigned[0] is None and assigned[1] is None else (0 if assigned[0] is not None else 1)
             return only, only
         low, high = sorted((0, 1), key=lambda i: assigned[i].reproj_px)  # type: ignore[union-attr]
+        if self._board and solutions_agree((assigned[low], assigned[high]), len(self.noise.points)):  # type: ignore[arg-type]
+            return low, low  # a board's two solutions that agree: either is right
         better, worse = assigned[low].reproj_px, assigned[high].reproj_px  # type: ignore[union-attr]
         strong = low if decisive(better, worse, cfg, self.noise.frame_sigma_px, self._margin_scale()) else None
         lean = low if worse - better > cfg.decide_margin_px * self._margin_scale() and worse >= 2.0 * better else None
@@ -275,5 +337,7 @@ class FlipEvidence:
         if None in assigned:
             return False
         a, b = assigned  # type: ignore[misc]
+        if self._board and separation_deg <= AGREE_DEG:
+            return False  # a board's two solutions that agree: either is right (see solutions_agree)
         margin = self.config.decide_margin_px * self._margin_scale()
         return abs(a.reproj_px - b.reproj_px) < margin and separation_deg <= 2.0 * self.config.flip_angle_deg
