@@ -257,7 +257,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 def screenshot(args: argparse.Namespace, files: list[Path]) -> int:
     """``view --screenshot OUT.png``: the web viewer showing ``files`` at ``--frame`` in ``--layout``, as a PNG."""
     from ..errors import OutputError
-    from ..viz.screenshot import encode_png, take_screenshot
+    from ..viz.screenshot import encode_png, require_chromium, take_screenshot
 
     if args.web:
         raise InputError("--screenshot and --web: give one (--screenshot takes its own viewer, closed after the shot)")
@@ -266,6 +266,7 @@ def screenshot(args: argparse.Namespace, files: list[Path]) -> int:
         raise InputError(f"--screenshot {printable(out)}: the screenshot is a PNG: name it OUT.png")
     if out.is_dir():
         raise InputError(f"--screenshot {printable(out)}: is a directory: name the PNG to write")
+    require_chromium(args.chromium)
     say = (lambda line: print(f"view: {line}", file=sys.stderr, flush=True)) if not args.quiet else None
     if say is not None:
         say(f"{len(files)} file(s): {', '.join(printable(f.name) for f in files)}; layout {args.layout or 'full'}")

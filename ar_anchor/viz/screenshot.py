@@ -37,7 +37,15 @@ from ..errors import ArAnchorError, InputError, printable
 if TYPE_CHECKING:
     import numpy as np
 
-__all__ = ["LAYOUTS", "Shot", "ScreenshotError", "encode_png", "layout_blueprint", "take_screenshot"]
+__all__ = [
+    "LAYOUTS",
+    "ScreenshotError",
+    "Shot",
+    "encode_png",
+    "layout_blueprint",
+    "require_chromium",
+    "take_screenshot",
+]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +59,7 @@ LAYOUTS = {
 
 INSTALL_HINT = "install it (apt install chromium) or name it with --chromium PATH"
 _POLL_S = 1.0  # how often the viewer's state is read while it loads
+_NO_FRAMES_S = 15.0  # loaded this long without a `frame` timeline: the recording has none
 _QUIET_S = 6.0  # the page unchanged this long: the picture has settled
 
 
@@ -226,6 +235,17 @@ def _js_string(text: str) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- the shot
+def require_chromium(explicit: str | None = None) -> str:
+    """The Chromium binary (``explicit``, else one on PATH), or an :class:`InputError` saying how to install it."""
+    from .browser import find_chromium
+
+    binary = find_chromium(explicit)
+    if binary is None:
+        which = f"--chromium {printable(explicit)}: not found" if explicit else "no headless Chromium found"
+        raise InputError(f"a screenshot needs Chromium, {which}: {INSTALL_HINT}")
+    return binary
+
+
 def take_screenshot(
     files: Sequence[Path],
     *,
@@ -244,13 +264,10 @@ def take_screenshot(
     :class:`InputError` when there is no Chromium, the layout is unknown or ``frame`` is outside the
     recording's frames; :class:`ScreenshotError` when the viewer does not load the recording, reach the frame
     or stay on it within ``timeout_s``. ``say`` is told each step (a line); ``keep_log`` gets Chromium's log."""
-    from .browser import Browser, BrowserError, find_chromium
+    from .browser import Browser, BrowserError
     from .viewer import serve_web_viewer
 
-    binary = find_chromium(chromium)
-    if binary is None:
-        which = f"--chromium {printable(chromium)}: not found" if chromium else "no headless Chromium found"
-        raise InputError(f"a screenshot needs Chromium, {which}: {INSTALL_HINT}")
+    binary = require_chromium(chromium)
     blueprint = layout_blueprint(layout)
     say = say or (lambda _line: None)
     deadline = time.monotonic() + timeout_s
@@ -322,16 +339,21 @@ def _shoot(viewer: _Viewer, browser: Any, layout_url: str, frame: int | None, de
 def _wait_loaded(viewer: _Viewer, deadline: float) -> tuple[int, int]:
     """Wait until the viewer has started and loaded every source; the ``frame`` timeline's range."""
     last = None
+    loaded_since = None  # when the viewer last said it had loaded everything, yet had no frame timeline
     while True:
         state = viewer.state()
         if state != last:
             log.debug("viewer: %s", state)
             last = state
-        if state.get("started") and not state["loading"] and state["frames"] is not None:
-            return state["frames"]
+        if state.get("started") and not state["loading"]:
+            if state["frames"] is not None:
+                return state["frames"]
+            loaded_since = loaded_since or time.monotonic()
+            if time.monotonic() - loaded_since > _NO_FRAMES_S:
+                raise ScreenshotError("the recording has no `frame` timeline (not an ar-anchor run's recording?)")
+        else:
+            loaded_since = None
         if time.monotonic() > deadline:
-            if state.get("started") and not state.get("loading") and state.get("frames") is None:
-                raise ScreenshotError("the recording has no `frame` timeline (not a tracker run's recording?)")
             raise ScreenshotError(f"the viewer did not finish loading the recording within --timeout (last: {last})")
         time.sleep(_POLL_S)
 
