@@ -140,7 +140,7 @@ def export_after_run(
         return max(code, EXIT_FAILURE)
     finally:
         progress.close()
-    if not args.quiet and result.messages:
+    if result.messages:
         print(_mcap_counts(result))  # (the files are in the last line)
     print(outputs_line(out_dir, exported=_exported_names(result)))
     return code
