@@ -217,9 +217,9 @@ def cmd_view(args: argparse.Namespace) -> int:
     from ..viz.viewer import is_loopback, open_native_viewer, serve_web_viewer, stop_process
 
     files = recording_files(args.recordings)
-    if args.screenshot is not None:
+    if getattr(args, "screenshot", None) is not None:
         return screenshot(args, files)
-    shot_options = [name for name in SCREENSHOT_OPTIONS if getattr(args, name) is not None]
+    shot_options = [name for name in SCREENSHOT_OPTIONS if getattr(args, name, None) is not None]
     if shot_options:
         raise InputError(f"--{shot_options[0]} is --screenshot's: give --screenshot OUT.png too")
     if not is_loopback(args.bind):
