@@ -259,7 +259,7 @@ def test_worker_lines_escape_file_names_and_bidi_controls(media, tmp_path):
     # then: the broken video fails its row; every line is one line, escaped
     _clean(result, EXIT_FAILURE)
     assert "\x1b" not in result.stderr + result.stdout and "\u202e" not in result.stderr + result.stdout
-    assert len(result.stdout.strip().splitlines()) == 1 and "out\\x1b[31m\\nx" in result.stdout
+    assert len(result.stdout.strip().splitlines()) == 2 and "out\\x1b[31m\\nx" in result.stdout  # (summary, outputs)
     assert not any("forged" in line for line in result.stderr.splitlines() if line.startswith("ar-anchor: error:"))
     assert "001x\\nar-anchor: error: forged\\x1b[2J.png" in result.stderr
     assert "bad\\u202egpj" in result.stderr
