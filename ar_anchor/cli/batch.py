@@ -705,6 +705,8 @@ def _replay_all(
             f"{len(rows)} recording(s): {ok} replayed, {tally.skipped} skipped (already done), {len(failed)} failed"
             f" in {wall:.1f} s ({engine}); table: {printable(table)}"
         )
+    if not interrupted:
+        print(_outputs_line(out, table, rows))
     if interrupted:
         stop = KeyboardInterrupt()
         stop.note, stop.out_dir = f"{table.name} has a row for every recording", out  # type: ignore[attr-defined]
@@ -742,6 +744,25 @@ def format_runs(rows: list[dict[str, Any]], out: Path) -> str:
         "  wall s: the replay's time, start to end (skipped: its earlier run's)",
     ]
     return "\n".join(lines)
+
+
+def _outputs_line(out: Path, table: Path, rows: list[dict[str, Any]]) -> str:
+    """The batch's last line: its table, then each run's folder with the files in it (every part of a split
+    recording), for the recordings replayed now or before (skipped)."""
+    from .report import run_files
+
+    folders = []
+    for row in rows:
+        folder = out / row["name"]
+        if row["status"] not in ("ok", "skipped") or not folder.is_dir():
+            continue
+        try:
+            summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            summary = {}
+        names = [*run_files(folder, summary), *([STAMP_FILE] if (folder / STAMP_FILE).is_file() else [])]
+        folders.append(f"{printable(row['name'])}/ ({', '.join(names)})")
+    return f"outputs: {printable(out)}/ ({', '.join([printable(table.name), *folders])})"
 
 
 def usable_cores() -> int:

@@ -13,7 +13,7 @@ from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, ArAnchorError, InputError, printable
 from .options import add_command, output_path, positive_float
-from .report import Progress
+from .report import Progress, outputs_line
 
 
 def _formats(text: str) -> tuple[str, ...]:
@@ -93,17 +93,24 @@ def export_outputs(args: argparse.Namespace, out_dir: Path) -> list[tuple[str, P
     return export_output_paths(Path(out_dir))
 
 
-def _print_exported(result: Any) -> None:
+def _exported_names(result: Any) -> list[str]:
+    """The exports' names in the run's folder (``tum/ (N files)`` for the TUM trajectories)."""
     names = [path.name for path in result.files if path.parent == result.out_dir]
     tum = [path for path in result.files if path.parent != result.out_dir]
     if tum:
         names.insert(1 if "poses_ext.csv" in names else 0, f"tum/ ({len(tum)} files)")
-    line = f"exports: {printable(result.out_dir)}/ ({', '.join(names)})"
+    return names
+
+
+def _mcap_counts(result: Any) -> str:
+    messages = result.messages
+    return f"run.mcap: {messages['tf']} /tf, {messages['camera_info']} camera_info, {messages['image']} images"
+
+
+def _print_exported(result: Any) -> None:
+    line = f"exports: {printable(result.out_dir)}/ ({', '.join(_exported_names(result))})"
     if result.messages:
-        line += (
-            f"; run.mcap: {result.messages['tf']} /tf, {result.messages['camera_info']} camera_info, "
-            f"{result.messages['image']} images"
-        )
+        line += f"; {_mcap_counts(result)}"
     print(line)
 
 
@@ -128,11 +135,14 @@ def export_after_run(
                 out_dir, camera=camera, images=images if args.export_images else None, progress=progress
             )
     except ArAnchorError as err:
+        print(outputs_line(out_dir))  # the run's own files, complete
         print(f"ar-anchor: error: export of {printable(out_dir)} failed: {printable(err)}", file=sys.stderr)
         return max(code, EXIT_FAILURE)
     finally:
         progress.close()
-    _print_exported(result)
+    if result.messages:
+        print(_mcap_counts(result))  # (the files are in the last line)
+    print(outputs_line(out_dir, exported=_exported_names(result)))
     return code
 
 

@@ -4,8 +4,11 @@ the list of outputs and the exit code."""
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, printable
@@ -104,21 +107,46 @@ class LiveStatus:
 
 
 def finish(args: argparse.Namespace, outputs: Any) -> int:
-    """Print the run's summary (unless -q) and its output files (names escaped: :func:`~ar_anchor.errors.printable`);
-    the exit code (0 when the run completed)."""
+    """Print the run's summary (unless -q) and, as the last line, every file it wrote (names escaped:
+    :func:`~ar_anchor.errors.printable`), unless ``--export`` is to run first (:func:`export_after_run`
+    prints the line then, exports included); the exit code (0 when the run completed)."""
     if not args.quiet:
         print(format_summary(outputs.summary))
-    files = "poses.csv, summary.json, recording.rrd" + (", raw.mkv" if outputs.raw_video else "")
-    files += ", frames.csv" if (outputs.out_dir / "frames.csv").is_file() else ""  # (a replay of images)
-    print(f"outputs: {printable(outputs.out_dir)}/ ({files})")
-    video = outputs.summary.get("video_out")
-    if video:
-        print(f"annotated video: {printable(video['path'])} ({video['frames']} frames)")
-    images = outputs.summary.get("images_out")
-    if images:
-        print(f"annotated images: {printable(images['folder'])}/ ({images['images']} images)")
+    if not (getattr(args, "export", False) or getattr(args, "export_images", False)):
+        print(outputs_line(outputs.out_dir, outputs.summary))
     status = outputs.summary.get("status")
     return EXIT_OK if status == "completed" else EXIT_FAILURE
+
+
+def run_files(out_dir: Path, summary: dict[str, Any]) -> list[str]:
+    """The files a run wrote into ``out_dir``, in order: ``poses.csv``, ``summary.json``, every part of the
+    recording (``recording.rrd``, ``recording.part2.rrd``, ...: ``[recording] part_minutes``), ``raw.mkv``
+    with its timestamps (``--record``) and ``frames.csv`` (a replay of images); those that exist."""
+    names = ["poses.csv", "summary.json", *summary.get("recording_parts", ["recording.rrd"])]
+    names += ["raw.mkv", "raw.mkv.timestamps.csv", "frames.csv"]
+    return [name for name in names if (out_dir / name).is_file()]
+
+
+def outputs_line(out_dir: Path, summary: dict[str, Any] | None = None, exported: Sequence[str] = ()) -> str:
+    """``outputs: OUT/ (poses.csv, summary.json, recording.rrd, recording.part2.rrd, ...)``, then the exports
+    (``exported``: their names in ``out_dir``) and the annotated video (``--video-out``, anywhere) when
+    there are: the run's last line, every file it wrote. ``summary``: the run's (default: read from
+    ``out_dir``'s ``summary.json``)."""
+    out_dir = Path(out_dir)
+    if summary is None:
+        try:
+            summary = json.loads((out_dir / "summary.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            summary = {}
+    names = [*run_files(out_dir, summary), *exported]
+    line = f"outputs: {printable(out_dir)}/ ({', '.join(printable(name) for name in names)})"
+    video = summary.get("video_out")
+    if video:
+        line += f"; annotated video: {printable(video['path'])} ({video['frames']} frames)"
+    images = summary.get("images_out")
+    if images:
+        line += f"; annotated images: {printable(images['folder'])}/ ({images['images']} images)"
+    return line
 
 
 FEW_FRAMES = 30  # a run of at most this many frames (or of stills) says where each target was

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_INTERRUPTED, EXIT_OK, ArAnchorError, InputError, printable
-from .options import add_command
+from ..viz.screenshot import LAYOUTS
+from .options import add_command, float_in
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +35,7 @@ LOCAL_ONLY_RISK = (
     "recordings served and write entries into them (rerun's servers have no authentication)"
 )
 
+SCREENSHOT_OPTIONS = ("frame", "layout", "size", "timeout", "chromium")  # given without --screenshot: refused
 _RRD_MAGIC = b"RRF"  # an .rrd (or .rbl) file starts with RRF and a format digit
 
 
@@ -69,7 +71,8 @@ def add_parser(commands: Any) -> None:
         "Open RECORDING (.rrd files, or a run's output directory: its recording*.rrd parts) in the native "
         "rerun viewer, which needs a display, and wait until its window is closed. --web serves the web "
         "viewer on 127.0.0.1 instead and prints the URL to open; it serves until Ctrl-C. Over SSH, forward "
-        "both ports it prints (e.g. ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876 HOST).",
+        "both ports it prints (e.g. ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876 HOST). --screenshot "
+        "writes a PNG of the web viewer at one frame instead (headless Chromium, no display needed).",
     )
     view.add_argument(
         "recordings",
@@ -104,7 +107,57 @@ def add_parser(commands: Any) -> None:
         "any of them can read the recordings and write entries into them). Any other address shows the "
         "recordings, unauthenticated, to whoever reaches it on the network",
     )
+    shot = view.add_argument_group(
+        "screenshot",
+        "a PNG of the web viewer showing the recording (every part of a split run) at one frame, taken in headless "
+        "Chromium (apt install chromium); about a minute. Exit 2 when Chromium is missing or --frame is not in "
+        "the recording, 1 when the viewer did not show that frame",
+    )
+    shot.add_argument("--screenshot", type=Path, metavar="OUT.png", help="write the screenshot to OUT.png and exit")
+    shot.add_argument(
+        "--frame",
+        type=int,
+        default=None,
+        metavar="N",
+        help="--screenshot: the frame to show (the `frame` timeline; default its middle)",
+    )
+    shot.add_argument(
+        "--layout",
+        choices=tuple(LAYOUTS),
+        default=None,
+        help="--screenshot: what the viewer shows: "
+        + "; ".join(f"{name}: {what}" for name, what in LAYOUTS.items())
+        + " (default full)",
+    )
+    shot.add_argument(
+        "--size",
+        type=window_size,
+        default=None,
+        metavar="WxH",
+        help="--screenshot: the browser window in pixels (default 1600x900)",
+    )
+    shot.add_argument(
+        "--timeout",
+        type=float_in(1.0, 86400.0),
+        default=None,
+        metavar="S",
+        help="--screenshot: seconds the viewer gets to load and show the frame (default 300)",
+    )
+    shot.add_argument(
+        "--chromium", metavar="PATH", help="--screenshot: the Chromium binary (default: chromium on PATH)"
+    )
     view.set_defaults(func=cmd_view)
+
+
+def window_size(text: str) -> tuple[int, int]:
+    """An argparse type: ``WIDTHxHEIGHT`` in pixels, each 200-8000."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1600x900, got {text!r}") from None
+    if not (200 <= width <= 8000 and 200 <= height <= 8000):
+        raise argparse.ArgumentTypeError(f"width and height must be 200-8000 pixels, got {text!r}")
+    return width, height
 
 
 def _part_number(path: Path) -> tuple[int, str]:
@@ -164,6 +217,11 @@ def cmd_view(args: argparse.Namespace) -> int:
     from ..viz.viewer import is_loopback, open_native_viewer, serve_web_viewer, stop_process
 
     files = recording_files(args.recordings)
+    if getattr(args, "screenshot", None) is not None:
+        return screenshot(args, files)
+    shot_options = [name for name in SCREENSHOT_OPTIONS if getattr(args, name, None) is not None]
+    if shot_options:
+        raise InputError(f"--{shot_options[0]} is --screenshot's: give --screenshot OUT.png too")
     if not is_loopback(args.bind):
         log.warning(
             "--bind %s: the viewer and the recordings are open to the network here, with no authentication",
@@ -194,6 +252,42 @@ def cmd_view(args: argparse.Namespace) -> int:
     finally:
         viewer.stop()
     raise ArAnchorError(f"the rerun web viewer exited on its own (status {status}; -vv shows its output)")
+
+
+def screenshot(args: argparse.Namespace, files: list[Path]) -> int:
+    """``view --screenshot OUT.png``: the web viewer showing ``files`` at ``--frame`` in ``--layout``, as a PNG."""
+    from ..errors import OutputError
+    from ..viz.screenshot import encode_png, require_chromium, take_screenshot
+
+    if args.web:
+        raise InputError("--screenshot and --web: give one (--screenshot takes its own viewer, closed after the shot)")
+    out = args.screenshot
+    if out.suffix.lower() != ".png":
+        raise InputError(f"--screenshot {printable(out)}: the screenshot is a PNG: name it OUT.png")
+    if out.is_dir():
+        raise InputError(f"--screenshot {printable(out)}: is a directory: name the PNG to write")
+    require_chromium(args.chromium)
+    say = (lambda line: print(f"view: {line}", file=sys.stderr, flush=True)) if not args.quiet else None
+    if say is not None:
+        say(f"{len(files)} file(s): {', '.join(printable(f.name) for f in files)}; layout {args.layout or 'full'}")
+    layout = args.layout or "full"
+    shot = take_screenshot(
+        files,
+        frame=args.frame,
+        layout=layout,
+        size=args.size or (1600, 900),
+        timeout_s=args.timeout or 300.0,
+        chromium=args.chromium,
+        say=say,
+    )
+    png = encode_png(shot.image)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(png)
+    except OSError as err:
+        raise OutputError(f"--screenshot {printable(out)}: cannot write ({err.strerror or err})") from None
+    print(f"screenshot: {printable(out)} (frame {shot.frame} of {shot.frames[0]}..{shot.frames[1]}, {layout} layout)")
+    return EXIT_OK
 
 
 def serve_run(args: argparse.Namespace) -> int:

@@ -7,4 +7,5 @@
 - :mod:`.series`: time series kept per frame and sent in batches (the run's ``metrics/*``).
 - :mod:`.parts`: shapes (a target's marker squares, an overlay model as a mesh) and entity names.
 - :mod:`.viewer`: starting a local rerun viewer, or reusing the one already listening.
+- :mod:`.screenshot`: a recording in the web viewer at one frame, as a PNG (headless Chromium, :mod:`.browser`).
 """

@@ -229,6 +229,14 @@ def _check_batch(result: subprocess.CompletedProcess[str], out: Path, single: Pa
         summary = json.loads((out / f"clip{k}" / "summary.json").read_text())
         assert summary["status"] == "completed" and summary["command"] == "replay"
         assert (out / f"clip{k}" / "recording.rrd").is_file()
+    # the last line names the table and every file of each run's folder (not the failed one's)
+    last = result.stdout.strip().splitlines()[-1]
+    assert last.startswith(f"outputs: {out}/ (runs.parquet, clip0/ (poses.csv, summary.json, recording"), last
+    for k in range(CLIPS):
+        files = sorted(p.name for p in (out / f"clip{k}").iterdir() if not p.name.startswith("."))
+        listed = last.split(f"clip{k}/ (", 1)[1].split(")", 1)[0].split(", ")
+        assert sorted(listed) == files, (files, last)
+    assert "broken/" not in last
 
 
 @pytest.mark.slow

@@ -260,7 +260,8 @@ def test_worker_lines_escape_file_names_and_bidi_controls(media, tmp_path):
     _clean(result, EXIT_FAILURE)
     assert "\x1b" not in result.stderr + result.stdout and "\u202e" not in result.stderr + result.stdout
     lines = result.stdout.strip().splitlines()
-    assert len(lines) == 2 + 2 + 2 + 1  # the table (header, rule, a line per recording, legend), the totals
+    # the table (header, rule, a line per recording, legend), the totals, the outputs
+    assert len(lines) == 2 + 2 + 2 + 1 + 1
     assert all("out\\x1b[31m\\nx" in line for line in lines if "/" in line)  # (the folders, the table's path)
     assert not any("forged" in line for line in result.stderr.splitlines() if line.startswith("ar-anchor: error:"))
     assert "001x\\nar-anchor: error: forged\\x1b[2J.png" in result.stderr

@@ -323,7 +323,7 @@ def test_the_summary_lines_escape_file_names(capsys):
     assert finish(SimpleNamespace(quiet=True), outputs) == 0
     out = capsys.readouterr().out
     assert "\x1b" not in out and "\r" not in out
-    assert out.count("\n") == 2
+    assert out.count("\n") == 1  # one line: the outputs and the annotated video
     assert "out\\n\\x1b[31mred\\rx/" in out
 
 

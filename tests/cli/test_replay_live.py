@@ -631,3 +631,5 @@ def test_a_long_run_is_recorded_in_parts_that_each_verify(tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").glob("recording*.rrd")) == sorted(parts)
     for name in parts:
         verify_rrd(tmp_path / "out" / name)
+    # and the run's last line lists every part, in order
+    assert f"recording.rrd, {', '.join(parts[1:])}" in result.stdout.strip().splitlines()[-1], describe(result)

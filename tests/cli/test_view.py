@@ -452,3 +452,155 @@ def test_the_help_says_what_127_0_0_1_lets_in(argv, option):
     assert option in text
     assert "not other users: any process on this machine can connect" in text
     assert "write entries into" in text and "no authentication" in text
+
+
+# ---------------------------------------------------------------------------- view --screenshot
+
+PARTS_TOML = "[recording]\npart_minutes = 0.02\n"  # a new recording part every 1.2 s: a 60-frame demo has several
+
+
+def test_the_time_cursor_request_says_frame_and_the_state_parser_reads_it_back():
+    from ar_anchor.viz import screenshot
+
+    # given the request that moves the cursor to a frame far beyond one varint byte
+    request = screenshot.set_time_cursor_request(300)
+    # then it is field 6 holding the timeline name and the time
+    inner = screenshot.proto_fields(screenshot.proto_fields(request)[6][0])
+    assert screenshot.proto_fields(inner[2][0])[1] == [b"frame"]
+    assert screenshot.proto_fields(inner[3][0])[1] == [300]
+    # and a viewer state built of the same parts reads back as frames 0..59, cursor 300, nothing loading
+    field = screenshot._field
+    timeline = field(1, field(1, b"frame")) + field(3, b"\x08\x00\x10\x3b")
+    cursor = field(1, field(1, b"frame")) + field(3, b"\x08" + screenshot._encode_varint(300))
+    recording = field(1, b"Recording:abc") + field(2, timeline) + field(3, cursor)
+    state = screenshot.parse_viewer_state(field(2, b"Recording:abc") + field(3, recording))
+    assert state == {"started": True, "loading": 0, "frames": (0, 59), "cursor": 300}
+
+
+@pytest.mark.parametrize("layout", ["full", "overlay", "camera", "3d"])
+def test_every_layout_has_a_blueprint_paused_on_the_frame_timeline(tmp_path, layout):
+    from ar_anchor.viz.screenshot import layout_blueprint
+
+    path = tmp_path / f"{layout}.rbl"
+    layout_blueprint(layout).save("ar_anchor", path)
+    assert path.read_bytes().startswith(b"RRF")
+
+
+def test_a_screenshot_without_chromium_says_how_to_install_it(tmp_path):
+    rrd = _small_recording(tmp_path / "recording.rrd")
+    argv = ["view", str(rrd), "--screenshot", str(tmp_path / "shot.png"), "--chromium", "no-such-chromium"]
+    result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=120)
+    assert result.returncode == EXIT_USAGE, describe(result)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "apt install chromium" in lines[0] and "Traceback" not in result.stderr
+    assert not (tmp_path / "shot.png").exists()
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--frame", "3"], "--frame is --screenshot's"),
+        (["--layout", "overlay"], "--layout is --screenshot's"),
+        (["--screenshot", "shot.jpg"], "is a PNG"),
+        (["--screenshot", "shot.png", "--web"], "--screenshot and --web"),
+    ],
+)
+def test_screenshot_options_out_of_place_are_one_line_and_exit_2(tmp_path, extra, message):
+    rrd = _fake_rrd(tmp_path / "recording.rrd")
+    result = subprocess.run(cli(["view", str(rrd), *extra]), capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert result.returncode == EXIT_USAGE, describe(result)
+    assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1, describe(result)
+
+
+def test_view_help_documents_the_screenshot():
+    result = subprocess.run(cli(["view", "--help"]), capture_output=True, text=True, timeout=120)
+    text = " ".join(result.stdout.split())
+    for option in ("--screenshot OUT.png", "--frame N", "--layout {full,overlay,camera,3d}", "--chromium PATH"):
+        assert option in text
+    assert "apt install chromium" in text and "every part of a split run" in text
+
+
+def _image_box(shot: np.ndarray) -> tuple[int, int, int, int]:
+    """The camera image in a screenshot of the camera layout: the bounding box (x, y, w, h) of the bright,
+    textured pixels between the viewer's top bars and its time panel."""
+    height = shot.shape[0]
+    top, bottom = int(0.08 * height), int(0.95 * height)
+    grey = cv2.cvtColor(shot[top:bottom], cv2.COLOR_BGR2GRAY)
+    ys, xs = np.nonzero(grey > 60)  # the viewer's background is near black (dark theme)
+    x0, x1, y0, y1 = np.percentile(xs, 0.5), np.percentile(xs, 99.5), np.percentile(ys, 0.5), np.percentile(ys, 99.5)
+    return int(x0), int(y0) + top, int(x1 - x0), int(y1 - y0)
+
+
+def _demo_frames(tmp_path: Path, indices: list[int]) -> dict[int, np.ndarray]:
+    """The demo's frames ``indices`` as ``ar-anchor demo --frames 60 --config parts.toml`` renders them."""
+    from ar_anchor.camera import CameraModel
+    from ar_anchor.config import load_config
+    from ar_anchor.sources.synthetic import SyntheticSource
+    from ar_anchor.synthetic import Trajectory, demo_scene
+
+    config = load_config(tmp_path / "parts.toml", demo=True)
+    trajectory = Trajectory(kind="sweep", near_m=0.35, far_m=3.0, look_at=(-0.01, 0.0, 0.0))
+    scene = demo_scene(config, CameraModel.default_synthetic(), frames=60, seed=0, trajectory=trajectory)
+    with SyntheticSource(scene) as source:
+        return {frame.index: frame.image for frame in source if frame.index in indices}
+
+
+def _best_match(region: np.ndarray, frames: dict[int, np.ndarray]) -> tuple[int, dict[int, float]]:
+    """Which of ``frames`` the screenshot's image ``region`` is (normalised correlation of grey levels)."""
+    grey = cv2.cvtColor(region, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    scores = {}
+    for index, image in frames.items():
+        resized = cv2.resize(image, (grey.shape[1], grey.shape[0]), interpolation=cv2.INTER_AREA)
+        candidate = cv2.cvtColor(resized, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        scores[index] = float(cv2.matchTemplate(grey, candidate, cv2.TM_CCOEFF_NORMED)[0, 0])
+    return max(scores, key=scores.__getitem__), scores
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+@pytest.mark.skipif(find_chromium() is None, reason="chromium not installed (apt-get install chromium; .ci/run does)")
+def test_a_screenshot_of_a_split_recording_draws_exactly_the_frame_asked_for(tmp_path):
+    # given a demo run recorded in several parts (the frame asked for is in a later one)
+    (tmp_path / "parts.toml").write_text(PARTS_TOML)
+    argv = ["-q", "demo", "--frames", "60", "--config", "parts.toml", "--out", "run"]
+    subprocess.run(cli(argv), check=True, capture_output=True, timeout=300, cwd=tmp_path)
+    parts = json.loads((tmp_path / "run" / "summary.json").read_text())["recording_parts"]
+    assert len(parts) >= 3, parts
+    # when the run's folder is screenshot at frame 45 in the camera layout
+    shot_png = tmp_path / "shot.png"
+    argv = ["view", "run", "--screenshot", str(shot_png), "--frame", "45", "--layout", "camera"]
+    result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert result.returncode == 0, describe(result)
+    assert f"{len(parts)} file(s)" in result.stderr and "frame 45 of 0..59" in result.stdout, describe(result)
+    shot = cv2.imread(str(shot_png))
+    # then the camera image alone fills the window's width (the layout asked for, not the run's own) ...
+    x, y, w, h = _image_box(shot)
+    assert w > 0.7 * shot.shape[1], (x, y, w, h)
+    # ... and it is frame 45, not one before or after it (the last part starts before 45: all parts were read)
+    frames = _demo_frames(tmp_path, [0, 15, 30, 40, 44, 46, 50, 59, 45])
+    best, scores = _best_match(shot[y : y + h, x : x + w], frames)
+    print(f"correlation with each frame: {scores}")
+    assert best == 45, scores
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+@pytest.mark.skipif(find_chromium() is None, reason="chromium not installed (apt-get install chromium; .ci/run does)")
+def test_a_frame_outside_the_recording_is_one_line_and_exit_2(tmp_path):
+    import rerun as rr
+
+    # given a recording of frames 0..4
+    stream = rr.RecordingStream("ar_anchor_test")
+    stream.save(str(tmp_path / "recording.rrd"))
+    for frame in range(5):
+        stream.set_time("frame", sequence=frame)
+        stream.log("points", rr.Points3D(np.zeros((3, 3)) + frame))
+    stream.flush()
+    stream.disconnect()
+    # when frame 99 is asked for
+    argv = ["view", str(tmp_path / "recording.rrd"), "--screenshot", str(tmp_path / "shot.png"), "--frame", "99"]
+    result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=600)
+    # then the command says which frames there are, and writes nothing
+    assert result.returncode == EXIT_USAGE, describe(result)
+    assert "--frame 99: not in the recording (its frames are 0..4)" in result.stderr, describe(result)
+    assert "Traceback" not in result.stderr and not (tmp_path / "shot.png").exists()

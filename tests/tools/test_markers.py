@@ -540,6 +540,8 @@ def test_cli_success_and_usage_error(tmp_path: Path) -> None:
     for ext in ("pdf", "toml"):
         assert (tmp_path / "markers" / f"{stem}.{ext}").is_file()
         assert f"markers/{stem}.{ext}" in ok.stdout
+    last = ok.stdout.strip().splitlines()[-1]  # the last line names every file written
+    assert last == f"outputs: markers/{stem}.pdf, markers/{stem}.toml", ok.stdout
     assert load_config(tmp_path / "markers" / f"{stem}.toml").boards[0].marker_ids == (0, 1, 2, 3)
 
     bad = run_cli(["--ids", "0-3", "--out", "x"], tmp_path)

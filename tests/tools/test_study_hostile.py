@@ -220,6 +220,20 @@ def test_interrupted_study_leaves_nothing_that_looks_final(tmp_path, monkeypatch
     assert signal.getsignal(signal.SIGINT) is handler
 
 
+def test_all_studies_end_with_one_line_listing_every_file(tmp_path, monkeypatch, capsys):
+    # given two studies run as `all`
+    out = tmp_path / "study"
+    monkeypatch.setattr(command, "STUDIES", ("outliers", "ransac"))
+    args = parse(["all", *TINY_PNP, "--contaminations", "0", "--thresholds", "2", "--out", str(out)])
+    args.quiet = False
+    # when they complete
+    assert run_study(args) == 0
+    # then the last line names each file written, and they are the folder's files
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    listed = last.removeprefix(f"outputs: {out}/ (").removesuffix(")").split(", ")
+    assert sorted(listed) == sorted(p.name for p in out.iterdir()) and len(listed) == 8, last
+
+
 def test_signal_within_held_waits_for_its_end_then_interrupts():
     # given
     done = []

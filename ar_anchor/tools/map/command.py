@@ -267,9 +267,9 @@ def _run_map(
     for marker_id, why in solution.unplaced.items():
         log.warning("marker %d not mapped: %s", marker_id, why)
     print(f"map: {format_summary(solution)}")
-    for what, path in outputs.named():
-        print(f"  {what}: {printable(path)}")
     if not quiet:
         print("track it as one board with this tracker config (beside the layout):")
         print(board_snippet(outputs.primary.name, args.dictionary).rstrip("\n"))
+    # the last line: every file written, what each is
+    print("outputs: " + ", ".join(f"{printable(path)} ({what})" for what, path in outputs.named()))
     return 0

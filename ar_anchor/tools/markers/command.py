@@ -193,7 +193,6 @@ def run_markers(args: argparse.Namespace) -> int:
     with _as_typed(args):
         paths = write_sheet(sheet, out, fmt, dpi)
     if not getattr(args, "quiet", False):
-        for path in paths:
-            print(f"wrote {path}")
         print(f"print at 100 % / actual size (no scaling) and check the {RULER_MM:g} mm bar before use")
+        print("outputs: " + ", ".join(printable(path) for path in paths))  # the last line: every file written
     return 0

@@ -158,4 +158,7 @@ def run_study(args: argparse.Namespace) -> int:
                 where = printable(out / plan[0])
                 print(f"wrote {where}.png, .md, .json, .rrd ({seconds_text(result['meta']['wall_time_s'])})")
             interrupt.check()
+    if not quiet and len(plans) > 1:  # the last line: every file written
+        names = [f"{plan[0]}{ext}" for plan in plans for ext in (".png", ".md", ".json", ".rrd")]
+        print(f"outputs: {printable(out)}/ ({', '.join(names)})")
     return 0

@@ -137,6 +137,10 @@ def test_two_inputs_with_step_and_max_frames(tmp_path, capsys):
     for name in ("sheet.toml", "sheet.yml", "sheet_report.md", "sheet.rrd"):
         assert (out.parent / name).is_file(), name
     assert "map: 3 markers from 5 frames" in stdout
+    last = stdout.strip().splitlines()[-1]  # the last line names every file written
+    assert last.startswith("outputs: ") and all(
+        str(out.parent / name) in last for name in ("sheet.toml", "sheet.yml", "sheet_report.md", "sheet.rrd")
+    ), last
     report = (out.parent / "sheet_report.md").read_text()
     assert "5 searched (one in 2)" in report and "map frame: marker 1's" in report
     assert 'kind = "custom"' in report and 'layout = "sheet.toml"' in report
