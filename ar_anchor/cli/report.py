@@ -145,7 +145,8 @@ def outputs_line(out_dir: Path, summary: dict[str, Any] | None = None, exported:
         line += f"; annotated video: {printable(video['path'])} ({video['frames']} frames)"
     images = summary.get("images_out")
     if images:
-        line += f"; annotated images: {printable(images['folder'])}/ ({images['images']} images)"
+        count = images["images"]
+        line += f"; annotated images: {printable(images['folder'])}/ ({count} image{'' if count == 1 else 's'})"
     return line
 
 

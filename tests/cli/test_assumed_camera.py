@@ -49,7 +49,7 @@ def photo(tmp_path_factory) -> tuple[Path, float]:
 
 def _replay_process(root: Path, name: str, *camera: str) -> tuple[subprocess.CompletedProcess[str], Path]:
     out = root / name
-    args = [str(root / "shots"), *camera, "--marker-length", str(MARKER_M), "--dictionary", DICTIONARY]
+    args = [str(root / "shots"), *camera, "--marker-length", f"{MARKER_M * 100:g}cm", "--dictionary", DICTIONARY]
     result = subprocess.run(
         [sys.executable, "-m", "ar_anchor", "replay", *args, "--out", str(out)],
         capture_output=True,
@@ -166,3 +166,26 @@ def test_live_synthetic_renders_and_tracks_through_the_assumed_pinhole(tmp_path)
     assert camera["from"] == "--hfov-deg 60"
     assert camera["camera_matrix"][0][0] == pytest.approx(320.0 / math.tan(math.radians(30.0)))
     assert (camera["image_width"], camera["image_height"]) == (640, 480)
+
+
+def test_the_newcomers_photo_in_one_command(photo):
+    """The first-hour route for someone else's photo, in one command: no calibration file (a focal length), a
+    length with its unit, an annotated copy of the photo, and the distance on the console."""
+    root, truth_m = photo
+    images = root / "annotated"
+    # when
+    result, out = _replay_process(root, "newcomer", "--focal-px", f"{FOCAL_PX:g}", "--images-out", str(images))
+    assert result.returncode == 0, result.stderr
+    # then the console says where the marker was, within 10 % of the truth
+    lines = result.stdout.splitlines()
+    header = next(i for i, line in enumerate(lines) if line.split()[:1] == ["target"] and "distance m" in line)
+    (row,) = [line for line in lines[header + 2 :] if line.startswith("marker:7")]
+    distance = float(row.split()[2])
+    assert abs(distance - truth_m) < 0.10 * truth_m, (row, truth_m)
+    # and the photo is written back under its own name, annotated (the marker outlined: it differs from the source)
+    source = cv2.imread(str(root / "shots" / "photo.png"))
+    annotated = cv2.imread(str(images / "photo.png"))
+    assert annotated is not None and annotated.shape == source.shape
+    assert np.count_nonzero(np.any(annotated != source, axis=2)) > 500
+    # and the last line names both the run's files and the annotated images
+    assert "annotated images:" in lines[-1] and "recording.rrd" in lines[-1]
