@@ -163,7 +163,7 @@ def batch_markdown(results: dict[str, Any], command: str) -> str:
     clip, variants = results["clips"], results["variants"]
     total_frames = clip["clips"] * clip["frames"]
     lines = report_head(
-        "Batch (issue 22): a loop of replays against `ar-anchor batch`, local and on Ray",
+        "Batch: a loop of replays against `ar-anchor batch`, local and on Ray",
         f"Produced by `{command}`: real `ar-anchor` processes timed from outside (see `ar_anchor/bench/batch.py`).",
         results.get("notes", []),
     )

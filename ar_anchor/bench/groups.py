@@ -204,7 +204,7 @@ def run_groups_benchmark(
 def groups_markdown(result: dict[str, Any], command: str) -> str:
     """The report: a row per scene and member, the acceptance and the machine."""
     lines = report_head(
-        "Learned rigid groups (issue 23): each marker alone against its learned group",
+        "Learned rigid groups: each marker alone against its learned group",
         f"Produced by `{command}` (synthetic, hand-held webcam scenes of a 6-marker sheet, no layout given).",
     )
     lines += [

@@ -298,7 +298,7 @@ def offline_markdown(results: dict[str, Any], command: str) -> str:
     """``offline.md`` from :func:`run_offline_benchmark`'s results: the long replay's time and memory, the
     states, chessboard.avi's scores, the verdicts and the machine."""
     lines = report_head(
-        "Offline replay (issue 20) against the causal one: cost, memory, real video",
+        "Offline replay against the causal one: cost, memory, real video",
         f"Produced by `{command}`: real `ar-anchor replay` processes (see `ar_anchor/bench/offline.py`).",
         results.get("notes", []),
     )

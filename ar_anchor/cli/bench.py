@@ -32,7 +32,7 @@ def add_parser(commands: Any) -> None:
         "name",
         choices=("stability", "boards", "overlay", "speed", "run", "real", "profile", "offline", "batch", "groups"),
         help="stability: raw vs tracker; boards: lone marker vs a board; overlay: drawing cost vs triangles; "
-        "speed: issue 33's acceptance, each a row with its target and pass/fail: chessboard.avi looped, 720p "
+        "speed: the speed targets, each a row with its target and pass/fail: chessboard.avi looped, 720p "
         "50 markers, 1080p one marker (replay processes vs a plain OpenCV SUBPIX + IPPE loop, taking turns), "
         "start-up, --help, live latency (--stages: per-stage times and accuracy of the tracker vs plain "
         "OpenCV loops in one process); "

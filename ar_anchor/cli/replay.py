@@ -209,7 +209,7 @@ def write_frames_csv(path: Path, source: Any) -> None:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """``ar-anchor replay SOURCE``: track a video file or images and record the run; the exit code."""
-    from ..run.loop import OfflineReplay, run_session
+    from ..run.loop import OfflineReplay, check_video_out, run_session
     from ..run.paths import FRAMES_CSV, claim_out_dir, config_inputs, run_output_paths, source_inputs
     from ..sources import open_source
     from ..tools.export.run import camera_summary, clear_previous_exports
@@ -235,6 +235,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 "camera": {"from": camera_from, **camera_summary(camera)},
             },
         )
+        check_video_out(args.video_out)  # (before frames.csv is written)
         out_dir = args.out or default_out("replay")
         inputs = source_inputs(source) + config_inputs(config, args.config, camera_path)
         frames_csv = [("--out", out_dir / FRAMES_CSV)] if hasattr(source, "files") else []

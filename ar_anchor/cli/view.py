@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_INTERRUPTED, EXIT_OK, ArAnchorError, InputError, printable
-from ..viz.screenshot import LAYOUTS
 from .options import add_command, float_in
 
 log = logging.getLogger(__name__)
@@ -37,6 +36,16 @@ LOCAL_ONLY_RISK = (
 
 SCREENSHOT_OPTIONS = ("frame", "layout", "size", "timeout", "chromium")  # given without --screenshot: refused
 _RRD_MAGIC = b"RRF"  # an .rrd (or .rbl) file starts with RRF and a format digit
+
+
+#: What ``--layout`` shows, for the help (``ar_anchor.viz.screenshot.LAYOUT_NAMES`` builds them; not imported
+#: here: ``--help`` loads no viewer code).
+LAYOUTS = {
+    "full": "the run's own layout: the AR overlay, the 3D scene, the plots and the events",
+    "overlay": "the AR overlay view alone: the camera image with the 3D world projected onto it",
+    "camera": "the camera view alone: the image and its 2D detections",
+    "3d": "the 3D scene alone",
+}
 
 
 def port_number(text: str) -> int:

@@ -165,7 +165,12 @@ def _overlay_renderer(tracker: Tracker, options: RunOptions) -> OverlayRenderer 
     and ``--video-out`` checked, so that neither fails once outputs exist (``--images-out``: by the command)."""
     drawn = options.overlays or options.video_out or options.images_out
     renderer = OverlayRenderer(tracker.config, tracker.camera) if drawn else None
-    video_out = options.video_out
+    check_video_out(options.video_out)
+    return renderer
+
+
+def check_video_out(video_out: Path | None) -> None:
+    """``--video-out``'s extension and path, checked before anything is written (:class:`InputError`)."""
     if video_out is not None and video_out.suffix.lower() not in SUPPORTED_EXTENSIONS:
         still = " (annotated images of an image folder: replay --images-out DIR)"
         raise InputError(
@@ -174,7 +179,6 @@ def _overlay_renderer(tracker: Tracker, options: RunOptions) -> OverlayRenderer 
         )
     if video_out is not None and (problem := opencv_path_problem(video_out)):
         raise InputError(f"--video-out {os.fsencode(video_out)!r}: {problem}")
-    return renderer
 
 
 @contextmanager

@@ -153,6 +153,7 @@ class Browser:
         return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
 
     def close(self) -> None:
+        """Close the browser (quietly: it may be gone already)."""
         try:
             self._session = ""
             self.send("Browser.close")

@@ -6,7 +6,7 @@ served over HTTP on 127.0.0.1 from a thread of this process; the web viewer's pa
 (:func:`~.viewer.serve_web_viewer`, also on 127.0.0.1), and headless Chromium (:mod:`.browser`; WebGL on the
 CPU, SwiftShader) opens it with every part (``?url=<part>&url=<part>...``: the parts share a recording id, so
 the viewer merges them into one recording). Once the viewer has loaded them all, the layout asked for
-(:data:`LAYOUTS`, a blueprint with the time panel paused on the ``frame`` timeline) is loaded after them, so
+(:data:`LAYOUT_NAMES`, a blueprint with the time panel paused on the ``frame`` timeline) is loaded after them, so
 that it replaces the layout stored in the recording instead of racing it. The time cursor goes to the frame
 through the viewer's control API (``window._handle.viewer_control``, a protobuf ``SetTimeCursorRequest``;
 experimental in rerun 0.41), and the shot is taken once the page has stopped changing. The cursor is read
@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     import numpy as np
 
 __all__ = [
-    "LAYOUTS",
+    "LAYOUT_NAMES",
     "ScreenshotError",
     "Shot",
     "encode_png",
@@ -49,13 +49,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: The layouts a screenshot can show: name -> what it is.
-LAYOUTS = {
-    "full": "the run's own layout: the AR overlay, the 3D scene, the plots and the events",
-    "overlay": "the AR overlay view alone: the camera image with the 3D world projected onto it",
-    "camera": "the camera view alone: the image and its 2D detections",
-    "3d": "the 3D scene alone",
-}
+#: The layouts a screenshot can show (``ar-anchor view --layout``; what each shows: the command's help).
+LAYOUT_NAMES = ("full", "overlay", "camera", "3d")
 
 INSTALL_HINT = "install it (apt install chromium) or name it with --chromium PATH"
 _POLL_S = 1.0  # how often the viewer's state is read while it loads
@@ -78,7 +73,7 @@ class Shot:
 
 # ---------------------------------------------------------------------------------------------- layouts
 def layout_blueprint(layout: str) -> Any:
-    """The blueprint of ``layout`` (:data:`LAYOUTS`) with a collapsed time panel paused on ``frame``."""
+    """The blueprint of ``layout`` (:data:`LAYOUT_NAMES`) with a collapsed time panel paused on ``frame``."""
     import rerun.blueprint as rrb
 
     from .blueprints import PROJECTED, run_blueprint
@@ -92,7 +87,7 @@ def layout_blueprint(layout: str) -> Any:
     elif layout == "3d":
         root = rrb.Spatial3DView(origin="world", name="3D scene", line_grid=rrb.LineGrid3D(visible=True, spacing=0.1))
     else:
-        raise InputError(f"--layout {printable(layout)}: not a layout (any of {', '.join(LAYOUTS)})")
+        raise InputError(f"--layout {printable(layout)}: not a layout (any of {', '.join(LAYOUT_NAMES)})")
     time_panel = rrb.TimePanel(state="collapsed", timeline="frame", play_state="paused")
     return rrb.Blueprint(root, time_panel, collapse_panels=True)
 

@@ -155,6 +155,7 @@ def test_video_out_with_an_image_extension_suggests_images_out(photos: Path, tmp
     assert_clean_exit(result, {2})
     (line,) = error_lines(result.stderr)
     assert "--video-out" in line and "--images-out DIR" in line, line
+    assert not (tmp_path / "run").exists()  # (exit 2: nothing written, not even frames.csv)
 
 
 def test_a_folder_that_can_never_be_made_is_refused_before_the_run(photos: Path, tmp_path: Path) -> None:

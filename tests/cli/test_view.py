@@ -604,3 +604,10 @@ def test_a_frame_outside_the_recording_is_one_line_and_exit_2(tmp_path):
     assert result.returncode == EXIT_USAGE, describe(result)
     assert "--frame 99: not in the recording (its frames are 0..4)" in result.stderr, describe(result)
     assert "Traceback" not in result.stderr and not (tmp_path / "shot.png").exists()
+
+
+def test_the_help_describes_every_layout_the_screenshot_builds():
+    from ar_anchor.cli.view import LAYOUTS
+    from ar_anchor.viz.screenshot import LAYOUT_NAMES
+
+    assert tuple(LAYOUTS) == LAYOUT_NAMES

@@ -79,7 +79,7 @@ def speed_markdown(results: Mapping[str, Any], command: str) -> str:
     passed = [r for r in rows if r["passed"]]
     failed = [r for r in rows if r["passed"] is False]
     lines = [
-        "# Speed: issue 33's acceptance, plain OpenCV in the same run",
+        "# Speed: the targets, plain OpenCV in the same run",
         "",
         f"Produced by `{command}` in {meta['wall_time_s']:.0f} s"
         + (" (quick mode: shorter clips, one round: not the acceptance's numbers)" if meta.get("quick") else "")

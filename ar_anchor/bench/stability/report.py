@@ -199,7 +199,7 @@ def _offline_section(results: list[dict[str, Any]], meta: dict[str, Any]) -> lis
     if not meta.get("offline_scenarios"):
         return []
     return [
-        f"## Offline replay vs causal (issue 20) ({meta['offline_passed']} of {meta['offline_scenarios']} "
+        f"## Offline replay vs causal ({meta['offline_passed']} of {meta['offline_scenarios']} "
         "scenarios pass)",
         "",
         "The offline replay (`ar_anchor.track.offline.smooth`: the flip filter run forwards and backwards, each "
@@ -257,7 +257,7 @@ def stability_markdown(results: list[dict[str, Any]], meta: dict[str, Any]) -> s
         "(the output must be at least as good). *sheet disagree*: frames where two markers of the rigid sheet are "
         "> 10 deg apart. *found by full frame / missed with ROI*: marker-frames a full-frame search finds on the "
         "same frames, and how many of those ROI tracking (on by default) did not find (must be 0). "
-        "*misfit rows* (issue 32; must be 0, for the offline replay too): measured rows (`tracked` or `ambiguous`) "
+        "*misfit rows* (must be 0, for the offline replay too): measured rows (`tracked` or `ambiguous`) "
         "whose output reprojects on that frame's own corners worse than the frame's best solution's RMS error + "
         f"`[pose] fit_margin_px` ({fmt(meta.get('fit_margin_px'), 1)} px), with the worst excess in brackets: a "
         "pose carried over from another view.",

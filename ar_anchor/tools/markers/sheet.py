@@ -258,13 +258,16 @@ class MarkerSheet:
         """The ``ar-anchor markers`` command line that prints this sheet (without --out)."""
         parts = ["ar-anchor markers", f"--dictionary {self.dictionary}"]
         if self.kind == "single":
-            parts += [f"--ids {format_ids(self.ids)}", f"--size-mm {mm_text(self.marker_mm)}"]
+            parts += [f"--ids {format_ids(self.ids)}", f"--marker-length {mm_text(self.marker_mm)}mm"]
         else:
             parts += [f"--board {self.kind}", f"--cols {self.cols}", f"--rows {self.rows}"]
             if self.kind == "grid":
-                parts += [f"--size-mm {mm_text(self.marker_mm)}", f"--gap-mm {mm_text(self.gap_mm)}"]
+                parts += [f"--marker-length {mm_text(self.marker_mm)}mm", f"--gap-mm {mm_text(self.gap_mm)}"]
             else:
-                parts += [f"--square-mm {mm_text(self.square_mm)}", f"--size-mm {mm_text(self.marker_mm)}"]
+                parts += [
+                    f"--square-length {mm_text(self.square_mm)}mm",
+                    f"--marker-length {mm_text(self.marker_mm)}mm",
+                ]
                 parts += ["--legacy"] if self.legacy else []
             parts += [f"--first-id {self.first_id}"] if self.first_id else []
             parts += [f"--name {self.name}"] if self.name != self.kind else []
