@@ -555,24 +555,9 @@ def test_cli_success_and_usage_error(tmp_path: Path) -> None:
 # ---------------------------------------------------------------------------- the shipped sheets
 
 SHIPPED = [  # markers/README.md: the commands that made markers/*
-    ["--ids", "0-6,8-9", "--size-mm", "50"],
-    ["--ids", "7", "--size-mm", "40"],
-    [
-        "--board",
-        "grid",
-        "--cols",
-        "2",
-        "--rows",
-        "2",
-        "--size-mm",
-        "40",
-        "--gap-mm",
-        "20",
-        "--first-id",
-        "10",
-        "--name",
-        "desk",
-    ],
+    ["--ids", "0-6,8-9", "--marker-length", "50mm"],
+    ["--ids", "7", "--marker-length", "40mm"],
+    "--board grid --cols 2 --rows 2 --marker-length 40mm --gap-mm 20 --first-id 10 --name desk".split(),
 ]
 
 
