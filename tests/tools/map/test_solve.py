@@ -119,20 +119,20 @@ def test_fewer_than_two_markers_together_is_a_clear_error():
 
 def test_bundle_adjustment_jacobian_matches_finite_differences(monkeypatch):
     # given the bundle adjustment's residual function and analytic Jacobian, caught on their way to scipy
-    from ar_anchor.tools.map import solve
+    from ar_anchor.tools.map import adjust, initialise, problem
 
     captured = {}
-    real = solve.least_squares
+    real = adjust.least_squares
 
     def spy(fun, x0, jac="2-point", **options):
         captured.update(fun=fun, jac=jac, x0=x0)
         return real(fun, x0, jac=jac, **options)
 
-    monkeypatch.setattr(solve, "least_squares", spy)
+    monkeypatch.setattr(adjust, "least_squares", spy)
     _, frames = sheet_frames(6, seed=4)
-    problem = solve._Problem(frames, [WEBCAM], LENGTH_M)
-    initial = solve.initialise(problem)
-    solve.bundle_adjust(problem, initial.world_from_marker, initial.camera_from_world, initial.reference_id, max_nfev=1)
+    prob = problem.Problem(frames, [WEBCAM], LENGTH_M)
+    initial = initialise.initialise(prob)
+    adjust.bundle_adjust(prob, initial.world_from_marker, initial.camera_from_world, initial.reference_id, max_nfev=1)
     fun, jac = captured["fun"], captured["jac"]
     # when evaluated away from the start (rotation increments of about 0.02 rad, translations moved 5 mm)
     rng = np.random.default_rng(0)
