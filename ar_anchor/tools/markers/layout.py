@@ -1,5 +1,8 @@
 """A :class:`~.sheet.MarkerSheet` laid out on pages (mm, y down from the page's top edge).
 
+The layout reads a sheet through :class:`Sheet`, the few fields and methods it needs, so that ``sheet.py``
+(whose ``MarkerSheet.pages`` calls this module) is not imported here.
+
 Lone markers fill cells (marker, quiet zone of at least one marker cell, two caption lines) in
 rows and columns, as many per page as fit, each cell with cut marks; a board is one cell centred
 on a portrait page, or on a landscape one when it does not fit in portrait. Nothing is scaled: a
@@ -9,17 +12,46 @@ sheet that does not fit is an :class:`~ar_anchor.errors.InputError`. Every page 
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
+import cv2
 import numpy as np
 
 from ...errors import InputError
 from .page import PAPERS, Fill, MarkerItem, Page, Rect, Text, marker_bits, mm_text, text_width
 
-if TYPE_CHECKING:
-    from .sheet import MarkerSheet
+__all__ = ["PRINT_NOTE", "RULER_MM", "Sheet", "board_origin", "sheet_pages"]
 
-__all__ = ["PRINT_NOTE", "RULER_MM", "board_origin", "sheet_pages"]
+
+class Sheet(Protocol):
+    """What the layout reads of a sheet (:class:`~.sheet.MarkerSheet` has it all). Lengths in mm."""
+
+    kind: str
+    dictionary: str
+    ids: tuple[int, ...]
+    marker_mm: float
+    cols: int
+    rows: int
+    gap_mm: float
+    square_mm: float
+    legacy: bool
+    name: str
+    paper: str
+
+    @property
+    def board_size_mm(self) -> tuple[float, float]: ...
+
+    @property
+    def quiet_mm(self) -> float: ...
+
+    def cv_board(self) -> cv2.aruco.Board: ...
+
+    def stem(self, fmt: str = "pdf", dpi: int = 300) -> str: ...
+
+    def command(self, fmt: str = "pdf", dpi: int = 300) -> str: ...
+
+    def title(self) -> str: ...
+
 
 MARGIN = 8.0  # page edge to anything printed
 MARK_GAP = 1.0  # cut marks start this far outside the cut box ...
@@ -41,7 +73,7 @@ PRINT_NOTE = "Print at 100 % / actual size, no scaling (turn off 'fit to page').
 RULER_NOTE = "this bar must measure 100 mm"
 
 
-def sheet_pages(sheet: MarkerSheet, fmt: str = "pdf", dpi: int = 300) -> list[Page]:
+def sheet_pages(sheet: Sheet, fmt: str = "pdf", dpi: int = 300) -> list[Page]:
     """The sheet's pages (see :meth:`MarkerSheet.pages`)."""
     pages = _single_pages(sheet) if sheet.kind == "single" else [_board_page(sheet)]
     for number, page in enumerate(pages, start=1):
@@ -49,7 +81,7 @@ def sheet_pages(sheet: MarkerSheet, fmt: str = "pdf", dpi: int = 300) -> list[Pa
     return pages
 
 
-def _single_pages(sheet: MarkerSheet) -> list[Page]:
+def _single_pages(sheet: Sheet) -> list[Page]:
     width, height = PAPERS[sheet.paper]
     left, top, right, bottom = _content_area(width, height)
     side, quiet = sheet.marker_mm, sheet.quiet_mm
@@ -86,7 +118,7 @@ def _single_pages(sheet: MarkerSheet) -> list[Page]:
     return pages
 
 
-def _caption(sheet: MarkerSheet, marker_id: int | None = None) -> list[str]:
+def _caption(sheet: Sheet, marker_id: int | None = None) -> list[str]:
     if sheet.kind == "single":
         return [sheet.dictionary, f"id {marker_id}, {mm_text(sheet.marker_mm)} mm"]
     width, height = sheet.board_size_mm
@@ -105,7 +137,7 @@ def _caption(sheet: MarkerSheet, marker_id: int | None = None) -> list[str]:
     ]
 
 
-def _board_page(sheet: MarkerSheet) -> Page:
+def _board_page(sheet: Sheet) -> Page:
     board_w, board_h = sheet.board_size_mm
     quiet = sheet.quiet_mm
     caption = _caption(sheet)
@@ -156,7 +188,7 @@ def _board_page(sheet: MarkerSheet) -> Page:
     return page
 
 
-def board_origin(sheet: MarkerSheet) -> tuple[float, float]:
+def board_origin(sheet: Sheet) -> tuple[float, float]:
     """Where the board's top-left corner (OpenCV's board frame origin) lies on its page."""
     page = sheet_pages(sheet)[0]
     marker = page.markers[0]
@@ -164,7 +196,7 @@ def board_origin(sheet: MarkerSheet) -> tuple[float, float]:
     return (marker.x - corner[0], marker.y - corner[1])
 
 
-def _decorate(sheet: MarkerSheet, page: Page, number: int, count: int, fmt: str, dpi: int) -> None:
+def _decorate(sheet: Sheet, page: Page, number: int, count: int, fmt: str, dpi: int) -> None:
     """Header (title, print note, config file) and the 100 mm scale-check ruler."""
     width, height = page.width, page.height
     right = width - MARGIN
