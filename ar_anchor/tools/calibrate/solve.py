@@ -373,6 +373,21 @@ def bootstrap_uncertainty(
     std = np.where(np.isnan(bootstrap), opencv, np.fmax(bootstrap, opencv))
     if result.flags & cv2.CALIB_FIX_K3:
         std[8] = np.nan
+    distrust = _distrust(result, count, planned, ran, failed, seconds)
+    return Uncertainty(
+        std=tuple(float(v) for v in std),
+        bootstrap_std=tuple(float(v) for v in bootstrap),
+        planned=planned,
+        ran=ran,
+        failed=failed,
+        views=count,
+        seconds=seconds,
+        distrust=tuple(distrust),
+    )
+
+
+def _distrust(result: CalibrationResult, count: int, planned: int, ran: int, failed: int, seconds: float) -> list[str]:
+    """Why the uncertainty is not to be trusted (too few views, too alike, resamples failing); empty: it is."""
     distrust = []
     if count < MIN_TRUSTED_VIEWS:
         distrust.append(f"only {count} view(s) (at least {MIN_TRUSTED_VIEWS} are needed to estimate it)")
@@ -385,16 +400,7 @@ def bootstrap_uncertainty(
         distrust.append(f"{failed} of {ran} calibrations on resampled views failed")
     if planned and ran - failed < MIN_RESAMPLES:
         distrust.append(f"only {ran - failed} calibrations on resampled views succeeded in {seconds:.0f} s")
-    return Uncertainty(
-        std=tuple(float(v) for v in std),
-        bootstrap_std=tuple(float(v) for v in bootstrap),
-        planned=planned,
-        ran=ran,
-        failed=failed,
-        views=count,
-        seconds=seconds,
-        distrust=tuple(distrust),
-    )
+    return distrust
 
 
 # ---------------------------------------------------------------------------- coverage

@@ -16,7 +16,7 @@ from ...config import ConfigValueError, implausible_length_hint
 from ...config.dictionaries import canonical_dictionary
 from ...errors import ConfigError, InputError, OutputError, SourceError, printable
 from ...run.paths import Named, OutDirLock, check_paths, spec_inputs
-from .observe import observe_sources
+from .observe import Observed, observe_sources
 from .recording import MapRecording
 from .report import board_snippet, format_report, format_summary, write_layout_toml, write_layout_yaml
 from .solve import build_map
@@ -189,23 +189,8 @@ def run_map(args: argparse.Namespace) -> int:
         return _run_map(args, outputs, sources, camera, quiet)
 
 
-def _run_map(
-    args: argparse.Namespace, outputs: MapOutputs, sources: list[str], camera: CameraModel, quiet: bool
-) -> int:
-    def progress(message: str) -> None:
-        if not quiet:
-            print(f"ar-anchor: {message}", file=sys.stderr, flush=True)
-
-    observed = observe_sources(
-        sources,
-        camera,
-        args.dictionary,
-        float(args.marker_length),
-        step=args.step,
-        max_frames=args.max_frames,
-        progress=progress,
-    )
-    shown = ", ".join(printable(s) for s in sources)
+def _check_observed(observed: Observed, args: argparse.Namespace, shown: str) -> None:
+    """A clear error when the sources gave no frame, no marker, or never two markers in one frame."""
     if observed.frames_considered == 0:
         raise SourceError(f"{shown}: no frame could be read")
     if not observed.markers_seen:
@@ -224,6 +209,26 @@ def _run_map(
             f"fewer than two markers were ever seen together in one frame of {shown} (ids seen: {seen}): a map needs "
             "frames showing two markers or more"
         )
+
+
+def _run_map(
+    args: argparse.Namespace, outputs: MapOutputs, sources: list[str], camera: CameraModel, quiet: bool
+) -> int:
+    def progress(message: str) -> None:
+        if not quiet:
+            print(f"ar-anchor: {message}", file=sys.stderr, flush=True)
+
+    observed = observe_sources(
+        sources,
+        camera,
+        args.dictionary,
+        float(args.marker_length),
+        step=args.step,
+        max_frames=args.max_frames,
+        progress=progress,
+    )
+    shown = ", ".join(printable(s) for s in sources)
+    _check_observed(observed, args, shown)
     progress(
         f"{len(observed.frames)} frame(s) with two markers or more, ids {len(observed.markers_seen)}; solving the map"
     )

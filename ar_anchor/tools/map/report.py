@@ -181,19 +181,7 @@ def format_report(
         "| id | observations | RMS px | x m | y m | z m | sigma mm |",
         "|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    per_marker: dict[int, list[float]] = {}
-    for _, marker_id, error in solution.observation_errors:
-        per_marker.setdefault(marker_id, []).append(error)
-    for marker_id in marker_map.ids:
-        centre = marker_map.world_from_marker[marker_id].tvec
-        marker_errors = np.asarray(per_marker.get(marker_id, []))
-        rms = math.sqrt(float(np.mean(marker_errors**2))) if marker_errors.size else math.nan
-        sigma = marker_map.sigma_mm.get(marker_id, math.nan)
-        reference = " (reference)" if marker_id == marker_map.reference_id else ""
-        lines.append(
-            f"| {marker_id}{reference} | {solution.observations_per_marker.get(marker_id, 0)} | {rms:.3f} "
-            f"| {centre[0]:+.4f} | {centre[1]:+.4f} | {centre[2]:+.4f} | {sigma:.2f} |"
-        )
+    lines += _marker_rows(solution)
     if solution.unplaced:
         lines += ["", "Not mapped:", ""]
         lines += [f"- marker {m}: {why}" for m, why in solution.unplaced.items()]
@@ -223,3 +211,23 @@ def format_report(
         "",
     ]
     return "\n".join(lines)
+
+
+def _marker_rows(solution: MapSolution) -> list[str]:
+    """The markers table's rows: id, observations, RMS error, centre, uncertainty."""
+    marker_map = solution.map
+    rows = []
+    per_marker: dict[int, list[float]] = {}
+    for _, marker_id, error in solution.observation_errors:
+        per_marker.setdefault(marker_id, []).append(error)
+    for marker_id in marker_map.ids:
+        centre = marker_map.world_from_marker[marker_id].tvec
+        marker_errors = np.asarray(per_marker.get(marker_id, []))
+        rms = math.sqrt(float(np.mean(marker_errors**2))) if marker_errors.size else math.nan
+        sigma = marker_map.sigma_mm.get(marker_id, math.nan)
+        reference = " (reference)" if marker_id == marker_map.reference_id else ""
+        rows.append(
+            f"| {marker_id}{reference} | {solution.observations_per_marker.get(marker_id, 0)} | {rms:.3f} "
+            f"| {centre[0]:+.4f} | {centre[1]:+.4f} | {centre[2]:+.4f} | {sigma:.2f} |"
+        )
+    return rows
