@@ -32,7 +32,8 @@ from ..config import demo_config
 from ..config.document import demo_toml
 from ..synthetic import Trajectory, demo_scene
 from .report import fmt, load_average, machine_info, machine_lines, report_head, write_json
-from .run import _cli, _encode_scene
+from .run import _cli
+from .speed.scenes import encode_scene
 
 __all__ = ["CLIPS", "CLIP_FRAMES", "TARGET_SPEEDUP", "batch_markdown", "run_batch_benchmark", "write_batch_report"]
 
@@ -64,7 +65,7 @@ def _render(folder: Path, clips: int, frames: int, step: Callable[[str], None]) 
             kind="handheld", near_m=0.35, far_m=1.2, look_at=(-0.01, 0.0, 0.0), seed=k, duration_s=frames / FPS
         )
         scene = demo_scene(config, camera, frames=frames, trajectory=trajectory, fps=FPS, seed=k)
-        _encode_scene(folder / f"clip{k:02d}.mp4", scene)
+        encode_scene(folder / f"clip{k:02d}.mp4", scene)
     camera_file, config_file = folder.parent / "camera.yml", folder.parent / "demo.toml"
     camera.to_yaml(camera_file)
     config_file.write_text(demo_toml())

@@ -41,8 +41,10 @@ from ..config.document import demo_toml
 from ..synthetic import Trajectory, demo_scene
 from .real.scoring import read_poses_csv, score_rigid_sheet
 from .report import fmt, load_average, machine_info, machine_lines, report_head, write_json
-from .run import _cli, _encode_scene, _rss_mb
+from .run import _cli
+from .speed.live import rss_mb
 from .speed.real_clip import chessboard_files
+from .speed.scenes import encode_scene
 
 __all__ = [
     "MAX_GROWTH_MB",
@@ -84,7 +86,7 @@ def _clip(tmp: Path, minutes: float) -> dict[str, Any]:
     scene = demo_scene(demo_config(), camera, frames=frames, trajectory=trajectory, fps=FPS)
     video, camera_file, config = tmp / CLIP_NAME, tmp / "camera_720p.yml", tmp / "demo.toml"
     started = time.perf_counter()
-    _encode_scene(video, scene)
+    encode_scene(video, scene)
     camera.to_yaml(camera_file)
     config.write_text(demo_toml())
     width, height = camera.size
@@ -108,7 +110,7 @@ def _watched(command: list[str], what: str) -> tuple[float, list[tuple[float, fl
         process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=errors, text=True)
         try:
             while process.poll() is None:
-                rss = _rss_mb(process.pid)
+                rss = rss_mb(process.pid)
                 if rss is not None:
                     samples.append((time.monotonic() - started, rss))
                 try:

@@ -27,7 +27,6 @@ user would start it (default settings unless stated):
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 import tempfile
@@ -39,21 +38,19 @@ from typing import Any
 import numpy as np
 
 from ..camera import CameraModel
-from ..errors import ArAnchorError
 from .report import fmt, load_average, machine_info, machine_lines, report_head
-from .speed import render_clip, speed_scene
+from .speed import speed_scene
+from .speed.live import LIVE_SIZE as SIZE
+from .speed.live import SAMPLE_S, live_run, stages
 from .speed.real_clip import chessboard_files
-from .speed.scenes import FIFTY_MARKER_M, FIFTY_SIZE, fifty_markers_scene
+from .speed.scenes import FIFTY_MARKER_M, FIFTY_SIZE, encode_scene, fifty_markers_scene
 
 __all__ = ["ALTERNATIONS", "RUN_PARTS", "run_run_benchmark", "write_run_report"]
 
-SIZE = (1920, 1080)
 FX = 1480.0
-LIVE_FPS = 30.0
 WARMUP_S = 60.0
 # the live scene of one 5 cm marker (the synthetic camera renders what the config tracks)
 ONE_MARKER_CONFIG = "[markers]\nlength_m = 0.05\nids = [0]\n"
-SAMPLE_S = 5.0
 RUN_PARTS: tuple[str, ...] = ("1080p", "live", "chessboard", "50markers")  # what ``--clips`` takes
 ALTERNATIONS = 3  # replay and plain-loop runs each, taking turns
 
@@ -66,45 +63,11 @@ def _camera() -> CameraModel:
 
 def _encode_clip(path: Path, frames: int) -> None:
     """The one-marker 1080p clip of ``bench speed``, encoded to H.264 (CRF 18) with PyAV."""
-    _encode_scene(path, speed_scene("one", _camera(), frames))
-
-
-def _encode_scene(path: Path, scene: Any) -> None:
-    """A synthetic scene's frames (as ``bench speed`` renders them) encoded to H.264 (CRF 18) with PyAV."""
-    import av
-
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("libx264", rate=int(scene.fps))
-        stream.width, stream.height = scene.camera.size
-        stream.pix_fmt = "yuv420p"
-        stream.options = {"crf": "18", "preset": "veryfast"}
-
-        def encode(image: np.ndarray) -> None:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
-                container.mux(packet)
-
-        render_clip(scene, on_frame=encode, keep=False)
-        for packet in stream.encode():
-            container.mux(packet)
+    encode_scene(path, speed_scene("one", _camera(), frames))
 
 
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "ar_anchor", "-q", *args]
-
-
-def _rss_mb(pid: int) -> float | None:
-    try:
-        with open(f"/proc/{pid}/status") as handle:
-            for line in handle:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
-
-
-def _stages(summary: dict[str, Any]) -> dict[str, Any]:
-    return {stage.removesuffix("_ms"): values for stage, values in summary.get("latency_ms", {}).items()}
 
 
 def _timed(command: list[str], what: str) -> tuple[subprocess.CompletedProcess[str], float]:
@@ -131,7 +94,7 @@ def _replay_run(args: list[str], out: Path, shown: str) -> dict[str, Any]:
         "fps_process": summary["frames"] / wall,
         "process_wall_s": wall,
         "image_logging": summary.get("image_logging"),
-        "stages": _stages(summary),
+        "stages": stages(summary),
     }
 
 
@@ -204,72 +167,11 @@ def _replay_fifty(tmp: Path, frames: int) -> dict[str, Any]:
     width, height, fx = FIFTY_SIZE
     camera = CameraModel.from_fov(width, height, fx)
     video, camera_file = tmp / "clip_50markers_720p.mp4", tmp / "camera_720p.yml"
-    _encode_scene(video, fifty_markers_scene(camera, frames))
+    encode_scene(video, fifty_markers_scene(camera, frames))
     camera.to_yaml(camera_file)
     shown = f"ar-anchor replay clip_50markers_720p.mp4 --camera camera_720p.yml --marker-length {FIFTY_MARKER_M:g}"
     args = [str(video), "--camera", str(camera_file), "--marker-length", f"{FIFTY_MARKER_M:g}"]
     return {**_replay_run(args, tmp / "fifty", shown), "video_mb": video.stat().st_size / 1e6}
-
-
-def _sigint_as_a_user_has_it() -> None:
-    """In the live run's process before it starts: SIGINT back to its default. A bench started in the
-    background (``cmd &`` in a script, ``nohup``) has it ignored, the child would inherit that, and a live run
-    keeps ignoring a signal its parent ignored (as it should: that is how a background job is started)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
-def _live(tmp: Path, seconds: float, name: str, config: str | None = None) -> dict[str, Any]:
-    """A live synthetic 1080p run for ``seconds`` after the camera opened, then SIGINT. ``config``: a
-    tracker TOML (the synthetic scene holds the markers and boards it names)."""
-    out = tmp / name
-    width, height = SIZE
-    command = _cli(
-        "live", "--device", "synthetic", "--width", str(width), "--height", str(height), "--fps", str(LIVE_FPS)
-    )
-    command += ["--out", str(out)]
-    if config is not None:
-        path = tmp / f"{name}.toml"
-        path.write_text(config)
-        command += ["--config", str(path)]
-    process = subprocess.Popen(
-        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_as_a_user_has_it
-    )
-    samples: list[tuple[float, float]] = []
-    started: float | None = None
-    try:
-        while process.poll() is None:
-            now = time.monotonic()
-            if started is None and (out / "poses.csv").exists():
-                started = now  # the camera's clip is rendered and frames flow
-            if started is not None:
-                rss = _rss_mb(process.pid)
-                if rss is not None:
-                    samples.append((now - started, rss))
-                if now - started >= seconds:
-                    process.send_signal(signal.SIGINT)
-                    break
-            time.sleep(SAMPLE_S if started is not None else 0.5)
-        try:
-            _, stderr = process.communicate(timeout=120)
-        except subprocess.TimeoutExpired:
-            raise ArAnchorError(f"bench: the live run ({out}) did not end within 120 s of its SIGINT") from None
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
-    summary = json.loads((out / "summary.json").read_text())
-    return {
-        "exit_code": process.returncode,
-        "status": summary["status"],
-        "seconds": seconds,
-        "frames": summary["frames"],
-        "fps": summary["fps"],
-        "live": summary.get("live", {}),
-        "frames_not_logged": summary.get("frames_not_logged", 0),
-        "stages": _stages(summary),
-        "rss_mb": samples,
-        "stderr_tail": stderr.strip().splitlines()[-3:],
-    }
 
 
 def _memory(run: dict[str, Any]) -> dict[str, Any]:
@@ -333,12 +235,12 @@ def _live_parts(
 ) -> None:
     """Live latency (the default scene, one marker) and, when ``minutes`` > 0, the long run's memory."""
     step(f"live synthetic 1080p for {live_seconds:g} s")
-    results["live"] = _live(tmp, live_seconds, "live")
+    results["live"] = live_run(tmp, live_seconds, "live")
     step(f"live synthetic 1080p, one marker, for {live_seconds:g} s")
-    results["live_one"] = _live(tmp, live_seconds, "live_one", ONE_MARKER_CONFIG)
+    results["live_one"] = live_run(tmp, live_seconds, "live_one", ONE_MARKER_CONFIG)
     if minutes > 0:
         step(f"live synthetic 1080p for {minutes:g} min (memory)")
-        long_run = _live(tmp, minutes * 60.0, "long")
+        long_run = live_run(tmp, minutes * 60.0, "long")
         results["long_live"] = {k: v for k, v in long_run.items() if k != "rss_mb"}
         results["long_live"]["rss_mb"] = [[round(t, 1), round(rss, 1)] for t, rss in long_run["rss_mb"]]
         results["memory"] = _memory(long_run)

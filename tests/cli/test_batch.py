@@ -162,7 +162,7 @@ def _cli(*args: str) -> list[str]:
 def clips(tmp_path_factory) -> Path:
     """Six 25-frame 320x240 H.264 clips of the demo scene (hand-held camera), their camera and config, and a
     truncated broken.mp4."""
-    from ar_anchor.bench.run import _encode_scene
+    from ar_anchor.bench.speed.scenes import encode_scene
     from ar_anchor.camera import CameraModel
     from ar_anchor.config import demo_config
     from ar_anchor.config.document import demo_toml
@@ -175,7 +175,7 @@ def clips(tmp_path_factory) -> Path:
     for k in range(CLIPS):
         trajectory = Trajectory(kind="handheld", near_m=0.35, far_m=1.0, look_at=(-0.01, 0, 0), seed=k, duration_s=1)
         scene = demo_scene(demo_config(), camera, frames=FRAMES, trajectory=trajectory, fps=25.0, seed=k)
-        _encode_scene(videos / f"clip{k}.mp4", scene)
+        encode_scene(videos / f"clip{k}.mp4", scene)
     (videos / "broken.mp4").write_bytes((videos / "clip0.mp4").read_bytes()[:3000])
     camera.to_yaml(root / "camera.yml")
     (root / "demo.toml").write_text(demo_toml())

@@ -31,7 +31,7 @@ NOT_UTF8 = b"\xff".decode("utf-8", "surrogateescape")
 @pytest.fixture(scope="module")
 def media(tmp_path_factory) -> Path:
     """A 4-frame 160x120 H.264 clip of the demo scene, its camera file, and its frames as a PNG folder."""
-    from ar_anchor.bench.run import _encode_scene
+    from ar_anchor.bench.speed.scenes import encode_scene
     from ar_anchor.camera import CameraModel
     from ar_anchor.config import demo_config
     from ar_anchor.synthetic import Trajectory, demo_scene
@@ -40,7 +40,7 @@ def media(tmp_path_factory) -> Path:
     camera = CameraModel.from_fov(160, 120, 125.0)
     trajectory = Trajectory(kind="handheld", near_m=0.35, far_m=1.0, look_at=(-0.01, 0, 0), seed=0, duration_s=1)
     scene = demo_scene(demo_config(), camera, frames=FRAMES, trajectory=trajectory, fps=25.0, seed=0)
-    _encode_scene(root / "clip.mp4", scene)
+    encode_scene(root / "clip.mp4", scene)
     camera.to_yaml(root / "camera.yml")
     (root / "shots").mkdir()
     capture = cv2.VideoCapture(str(root / "clip.mp4"))

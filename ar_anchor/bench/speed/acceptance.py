@@ -39,11 +39,12 @@ from typing import Any
 
 from ...camera import CameraModel
 from ..report import load_average, machine_info
+from .live import live_run
 from .processes import cli, first_pose_run, plain_run, replay_run, wall_run
 from .real_clip import chessboard_files
 from .remux import loop_video
 from .rows import acceptance_rows, found_comparison, median, summarise_clip
-from .scenes import FIFTY, FIFTY_MARKER_M, FIFTY_SIZE, MARKER_M, fifty_markers_scene, speed_scene
+from .scenes import FIFTY, FIFTY_MARKER_M, FIFTY_SIZE, MARKER_M, encode_scene, fifty_markers_scene, speed_scene
 
 __all__ = ["DEFAULTS", "PARTS", "QUICK", "run_speed_acceptance"]
 
@@ -252,10 +253,8 @@ def _chessboard(
 
 def _encoded(tmp: Path, name: str, camera: CameraModel, scene: Any) -> tuple[Path, Path]:
     """The scene rendered and encoded to H.264 (CRF 18, as ``bench run`` encodes its clips) and its camera."""
-    from ..run import _encode_scene  # (here: bench.run imports this package)
-
     video, camera_file = tmp / f"{name}.mp4", tmp / f"{name}.yml"
-    _encode_scene(video, scene)
+    encode_scene(video, scene)
     camera.to_yaml(camera_file)
     return video, camera_file
 
@@ -334,8 +333,6 @@ def _startup(tmp: Path, repeats: int, help_runs: int, step: Callable[[str], None
 
 def _live(tmp: Path, runs: int, seconds: float, step: Callable[[str], None]) -> dict[str, Any]:
     """``runs`` live synthetic 1080p runs of ``seconds`` each (``bench run``'s live run, the default scene)."""
-    from ..run import _live as live_run  # (here: bench.run imports this package)
-
     done = []
     for index in range(runs):
         step(f"live --device synthetic 1920x1080, {seconds:g} s, {index + 1} of {runs}")
