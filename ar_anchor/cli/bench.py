@@ -44,21 +44,7 @@ def add_parser(commands: Any) -> None:
         "batch: 12 synthetic clips replayed in a loop of ar-anchor replay vs ar-anchor batch (local, --ray); "
         "groups: each marker of a hand-held sheet alone vs its learned rigid group (wrong frames, jitter)",
     )
-    bench.add_argument("--video", type=Path, default=None, help="real: the video (default: chessboard.avi)")
-    bench.add_argument(
-        "--camera", type=Path, default=None, help="real: its calibration (default: camera.yml or intrinsics.yml by it)"
-    )
-    bench.add_argument("--dictionary", default=None, help="real: override [detector] dictionary")
-    bench.add_argument(
-        "--marker-length",
-        type=length("m"),
-        default=None,
-        metavar="LENGTH",
-        help="real: override [markers] length_m, e.g. 50mm (a bare number is metres)",
-    )
-    bench.add_argument(
-        "--layout", type=Path, default=None, help="real: printed marker map (ArUco YAML or TOML): also score vs. it"
-    )
+    _add_real_options(bench)
     bench.add_argument("--quick", action="store_true", help="half the scenarios, shorter clips")
     bench.add_argument(
         "--minutes",
@@ -102,6 +88,25 @@ def add_parser(commands: Any) -> None:
     bench.set_defaults(func=cmd_bench)
 
 
+def _add_real_options(bench: argparse.ArgumentParser) -> None:
+    """``bench real`` (and ``profile``)'s inputs: the video, its calibration, dictionary, marker length, layout."""
+    bench.add_argument("--video", type=Path, default=None, help="real: the video (default: chessboard.avi)")
+    bench.add_argument(
+        "--camera", type=Path, default=None, help="real: its calibration (default: camera.yml or intrinsics.yml by it)"
+    )
+    bench.add_argument("--dictionary", default=None, help="real: override [detector] dictionary")
+    bench.add_argument(
+        "--marker-length",
+        type=length("m"),
+        default=None,
+        metavar="LENGTH",
+        help="real: override [markers] length_m, e.g. 50mm (a bare number is metres)",
+    )
+    bench.add_argument(
+        "--layout", type=Path, default=None, help="real: printed marker map (ArUco YAML or TOML): also score vs. it"
+    )
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     """``ar-anchor bench NAME``: run one benchmark, write ``NAME.md`` and ``NAME.json`` to ``--out``; the exit code."""
     from ..bench.boards import write_board_report
@@ -127,22 +132,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.name == "profile":
         _profile(args, real, command)
     elif real is not None:
-        from ..bench.real import real_summary, write_real_report
-
-        for option in ("video", "camera", "dictionary", "marker_length", "layout", "config"):
-            if getattr(args, option) is not None:
-                command += f" --{option.replace('_', '-')} {getattr(args, option)}"
-        config = load_tracker_config(  # as ar-anchor replay builds it
-            argparse.Namespace(config=args.config, dictionary=real.dictionary, marker_length=real.marker_length_m)
-        )
-
-        video_name = real.video.name
-
-        def frames(done: int, total: int | None) -> None:
-            if done % 50 == 0 or done == total:
-                progress(done - 1, total or done, f"frames of {video_name}")
-
-        print(real_summary(write_real_report(args.out, real, config, command=command, progress=frames)))
+        _real(args, real, command, progress)
     elif args.name == "run":
         from ..bench.run import write_run_report
 
@@ -185,6 +175,26 @@ def cmd_bench(args: argparse.Namespace) -> int:
     name = "speed_stages" if args.name == "speed" and args.stages else args.name
     print(f"results: {args.out / (name + '.md')} and {args.out / (name + '.json')}")
     return EXIT_OK
+
+
+def _real(args: argparse.Namespace, real: Any, command: str, progress: Any) -> None:
+    """``bench real``: the real video tracked and scored, its report written and summarised."""
+    from ..bench.real import real_summary, write_real_report
+
+    for option in ("video", "camera", "dictionary", "marker_length", "layout", "config"):
+        if getattr(args, option) is not None:
+            command += f" --{option.replace('_', '-')} {getattr(args, option)}"
+    config = load_tracker_config(  # as ar-anchor replay builds it
+        argparse.Namespace(config=args.config, dictionary=real.dictionary, marker_length=real.marker_length_m)
+    )
+
+    video_name = real.video.name
+
+    def frames(done: int, total: int | None) -> None:
+        if done % 50 == 0 or done == total:
+            progress(done - 1, total or done, f"frames of {video_name}")
+
+    print(real_summary(write_real_report(args.out, real, config, command=command, progress=frames)))
 
 
 def _speed(args: argparse.Namespace, clips: Any, progress: Any, command: str) -> Any:

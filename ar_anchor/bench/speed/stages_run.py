@@ -119,22 +119,35 @@ def run_stages_benchmark(
     wall = time.perf_counter() - start
     machine["load_average_end"] = load_average()
     return {
-        "meta": {
-            "frames_per_clip": frames,
-            "sizes": [list(s) for s in sizes],
-            "scenes": list(scenes),
-            "extra_clips": list(extra),
-            "warmup_frames": WARMUP_FRAMES,
-            "memory_frames": memory_frames,
-            "noise": NOISE,
-            "blur_px": BLUR,
-            "wall_time_s": wall,
-            **machine,
-        },
+        "meta": _meta(frames, sizes, scenes, extra, memory_frames, wall, machine),
         "notes": notes,
         "clips": clips,
         "end_to_end": e2e_result,
         "memory": memory,
+    }
+
+
+def _meta(
+    frames: int,
+    sizes: Sequence[Size],
+    scenes: Sequence[str],
+    extra: Sequence[str],
+    memory_frames: int,
+    wall: float,
+    machine: dict[str, Any],
+) -> dict[str, Any]:
+    """The results' ``meta``: what was asked for, the render settings, the wall time and the machine."""
+    return {
+        "frames_per_clip": frames,
+        "sizes": [list(s) for s in sizes],
+        "scenes": list(scenes),
+        "extra_clips": list(extra),
+        "warmup_frames": WARMUP_FRAMES,
+        "memory_frames": memory_frames,
+        "noise": NOISE,
+        "blur_px": BLUR,
+        "wall_time_s": wall,
+        **machine,
     }
 
 
