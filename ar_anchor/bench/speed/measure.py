@@ -214,7 +214,7 @@ def accuracy(outputs: Sequence[Mapping[str, Pose]], truths: Sequence[Mapping[str
     in_view = 0
     for output, truth in zip(outputs, truths):
         for name, true_pose in truth.items():
-            if not name.startswith(kind + ":"):
+            if TargetId.parse(name).kind != kind:
                 continue
             in_view += 1
             pose = output.get(name)

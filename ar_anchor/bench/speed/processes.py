@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ...targets import TargetId
+
 __all__ = [
     "MEASURED_STATES",
     "PLAIN_LOOP",
@@ -58,9 +60,9 @@ def measured_markers(poses_csv: Path) -> dict[int, set[int]]:
     out: dict[int, set[int]] = {}
     with open(poses_csv, newline="") as handle:
         for row in csv.DictReader(handle):
-            target = row["target"]
-            if target.startswith("marker:") and row["state"] in MEASURED_STATES:
-                out.setdefault(int(row["frame"]), set()).add(int(target.split(":", 1)[1]))
+            marker_id = TargetId.parse(row["target"]).marker_id
+            if marker_id is not None and row["state"] in MEASURED_STATES:
+                out.setdefault(int(row["frame"]), set()).add(marker_id)
     return out
 
 
