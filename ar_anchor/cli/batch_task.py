@@ -44,7 +44,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ArAnchorError, InputError, printable
-from .batch import STAMP_FILE, Recording, empty_row, usable_cores
+from .recordings import STAMP_FILE, Recording
+from .runs_table import empty_row
 
 log = logging.getLogger(__name__)
 
@@ -71,11 +72,11 @@ class BatchTask:
 def _log_to_stderr(name: str, verbose: int) -> None:
     """The ``ar_anchor`` loggers of this process to stderr, each line naming the recording."""
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
-    from .main import _escaped_message
+    from .terminal import escaped_message
 
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter(f"ar-anchor: {printable(name)}: %(levelname)s: %(message)s"))
-    handler.addFilter(_escaped_message)  # (a file name's newline or ANSI escape is shown, not obeyed)
+    handler.addFilter(escaped_message)  # (a file name's newline or ANSI escape is shown, not obeyed)
     root = logging.getLogger("ar_anchor")
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -145,7 +146,8 @@ def replay_recording(task: BatchTask, *, single_thread: bool = False) -> dict[st
     ``single_thread``: OpenCV on one thread (several recordings share the cores)."""
     import cv2
 
-    from .main import build_parser
+    from . import replay
+    from .options import base_parser
 
     if single_thread and os.environ.get(KEEP_THREADS) != "1":
         cv2.setNumThreads(1)
@@ -155,7 +157,9 @@ def replay_recording(task: BatchTask, *, single_thread: bool = False) -> dict[st
     (task.out_dir / STAMP_FILE).unlink(missing_ok=True)  # (it would vouch for outputs this run replaces)
     captured = io.StringIO()
     try:
-        args = build_parser().parse_args(["-q", "replay", task.recording.source])
+        parser, commands = base_parser()  # (the ar-anchor parser with replay alone: its options, their defaults)
+        replay.add_parser(commands)
+        args = parser.parse_args(["-q", "replay", task.recording.source])
         vars(args).update(task.options)
         args.out, args.quiet = task.out_dir, True
         args.batch_warned = True  # (what every recording shares, e.g. an assumed camera, the batch said once)
@@ -519,3 +523,11 @@ def _ray_collect(
                 row = _failed(task, "interrupted" if cancelled else f"ray: {type(err).__name__}: {printable(first)}",
                               "interrupted" if cancelled else "failed")  # fmt: skip
             done(row)
+
+
+def usable_cores() -> int:
+    """The CPUs this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)
