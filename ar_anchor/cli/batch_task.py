@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ArAnchorError, InputError, printable
+from ..targets import TargetId
 from .recordings import STAMP_FILE, Recording
 from .runs_table import empty_row
 
@@ -99,6 +100,17 @@ def _finite(value: Any) -> float | None:
     return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
 
 
+def _is_learned_group(name: str) -> bool:
+    """Is the target ``name`` (a key of ``summary.json``'s ``targets``) a learned group's board?"""
+    from ..track.groups import GROUP_PREFIX
+
+    try:
+        target = TargetId.parse(name)
+    except ValueError:
+        return False
+    return target.kind == "board" and target.name.startswith(GROUP_PREFIX)
+
+
 def fill_row(row: dict[str, Any], out_dir: Path, *, rigid_sheet: bool) -> None:
     """The row's figures from the run's ``summary.json`` (and ``poses.csv`` for the pair flips)."""
     try:
@@ -112,10 +124,8 @@ def fill_row(row: dict[str, Any], out_dir: Path, *, rigid_sheet: bool) -> None:
     row["detection_rate"] = _fraction(summary.get("frames_with_pose") or 0, frames)
     targets = summary.get("targets") or {}
     counts: dict[str, dict[str, int]] = {}
-    from ..track.groups import GROUP_PREFIX
-
     for name, entry in targets.items():
-        if name.startswith(f"board:{GROUP_PREFIX}"):
+        if _is_learned_group(name):
             continue  # a learned group (--learn-groups) lives for part of the run by design: not "lost" before it
         states = {state: int(n) for state, n in (entry.get("states") or {}).items()}
         states["lost"] = max(0, frames - sum(states.values()))
