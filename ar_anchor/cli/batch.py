@@ -16,6 +16,9 @@ same source (same files, sizes and times) with the same options, camera and conf
 
 ``OUT`` is locked for the batch (replay's lock), and checked before anything is written: no file there that a
 batch or a run did not write is replaced, and no recording is written into its own image folder.
+
+The recordings are found in :mod:`.recordings`, the runs table kept in :mod:`.runs_table`, and the tasks run
+by :mod:`.batch_task`; this module is the command.
 """
 
 from __future__ import annotations
