@@ -28,7 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .camera import filestorage_nesting_problem, opencv_path_problem
+from .camera.files import filestorage_nesting_problem, opencv_path_problem
 from .errors import ConfigError
 
 if sys.version_info >= (3, 11):

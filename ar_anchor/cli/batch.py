@@ -16,15 +16,15 @@ same source (same files, sizes and times) with the same options, camera and conf
 
 ``OUT`` is locked for the batch (replay's lock), and checked before anything is written: no file there that a
 batch or a run did not write is replaced, and no recording is written into its own image folder.
+
+The recordings are found in :mod:`.recordings`, the runs table kept in :mod:`.runs_table`, and the tasks run
+by :mod:`.batch_task`; this module is the command.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
-import glob
-import hashlib
 import json
 import logging
 import os
@@ -37,22 +37,26 @@ from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, InputError, printable
 from .options import add_command, add_run_options, assumed_camera_option, default_out, int_at_least, output_path
+from .recordings import STAMP_FILE, Recording, _image_folder, _inside, _not_a_file, find_recordings
 from .replay import add_replay_options
+from .runs_table import (
+    _is_runs_table,
+    _outputs_line,
+    empty_row,
+    fingerprint,
+    format_runs,
+    previous_row,
+    runs_path,
+    write_runs,
+)
 
 log = logging.getLogger(__name__)
 
-VIDEO_EXTENSIONS = frozenset({".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".wmv"})
-IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm"})
-MANIFEST_COLUMNS = ("source", "camera", "config", "name")
 # the options of the batch command itself (everything else is handed to each replay as it is)
 BATCH_ONLY = frozenset(
     {"sources", "manifest", "jobs", "ray", "force", "rigid_sheet", "out", "quiet", "verbose", "command", "func"}
     | {"images_out"}  # (given to the image recordings only, each its own folder: see _run_batch)
 )
-RUNS_FILE, RUNS_CSV = "runs.parquet", "runs.csv"
-STAMP_FILE = "batch.json"
-RESERVED_NAMES = (RUNS_FILE, RUNS_CSV, ".ar-anchor.lock")  # files of --out itself: no recording is named so
-_GLOB_CHARS = frozenset("*?[")
 
 
 def add_parser(commands: Any) -> None:
@@ -133,347 +137,6 @@ def ray_address(text: str) -> str:
     )
 
 
-# ============================================================================ the recordings
-
-
-@dataclass(frozen=True)
-class Recording:
-    """One recording to replay: its source (as ``replay`` takes it), camera and config (None: replay's
-    defaults), and the name of its output folder."""
-
-    source: str
-    name: str
-    camera: Path | None = None
-    config: Path | None = None
-
-
-def _is_glob(text: str) -> bool:
-    return any(ch in text for ch in _GLOB_CHARS) and not Path(text).exists()
-
-
-def _expand(text: str) -> list[tuple[str, str]]:
-    """One SOURCE argument as (source, default name) pairs (see the module doc); InputError when nothing fits."""
-    if _is_glob(text):
-        matches = sorted(Path(p) for p in glob.glob(text) if Path(p).is_file())
-        videos = [p for p in matches if p.suffix.lower() in VIDEO_EXTENSIONS]
-        found = [(str(p), _default_name(str(p))) for p in videos]
-        if any(p.suffix.lower() in IMAGE_EXTENSIONS for p in matches):
-            found.append((text, _default_name(text)))
-        if not found:
-            if not matches:
-                raise InputError(f"{printable(text)}: no file matches this pattern")
-            raise InputError(f"{printable(text)}: the pattern matches {len(matches)} file(s), none a video or an image")
-        return found
-    path = Path(text)
-    if path.is_dir():
-        entries = sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
-        videos = [p for p in entries if p.suffix.lower() in VIDEO_EXTENSIONS]
-        if videos:
-            return [(str(p), _default_name(str(p))) for p in videos]
-        if any(p.suffix.lower() in IMAGE_EXTENSIONS for p in entries):
-            return [(text, _default_name(text))]
-        raise InputError(f"{printable(text)}: no video or image files in this folder")
-    if path.is_file():
-        return [(text, _default_name(text))]
-    raise InputError(f"{printable(text)}: {_not_a_source(path)}")
-
-
-def _not_a_file(path: Path, expected: str) -> str:
-    """Why ``path`` is not the regular file (or folder) ``expected``: missing, or what it is (never opened: a
-    named pipe would block)."""
-    from ..sources.checks import file_kind
-
-    try:
-        mode = path.stat().st_mode
-    except FileNotFoundError:
-        return "no such file" + (" or folder" if "folder" in expected else "")
-    except OSError as err:
-        return f"cannot be examined ({err.strerror or err})"
-    return f"is {file_kind(mode)}, not {expected} (not supported)"
-
-
-def _not_a_source(path: Path) -> str:
-    return _not_a_file(path, "a video file, an image folder or a glob")
-
-
-def _unique(names: Sequence[str]) -> list[str]:
-    """``names`` made unique (case-insensitively): the second ``clip`` is ``clip_2``, the third ``clip_3``; a name
-    of a file the batch writes into ``--out`` itself (``runs.parquet``, ``runs.csv``, the lock) gets ``_2`` too."""
-    taken: set[str] = {name.lower() for name in RESERVED_NAMES}
-    out = []
-    for name in names:
-        base = name.strip() or "recording"
-        candidate, k = base, 1
-        while candidate.lower() in taken:
-            k += 1
-            candidate = f"{base}_{k}"
-        taken.add(candidate.lower())
-        out.append(candidate)
-    return out
-
-
-def _unsafe(ch: str) -> bool:
-    code = ord(ch)
-    return ch in '/\\:<>"|?*' or code < 0x20 or code == 0x7F or 0x80 <= code < 0xA0 or 0xD800 <= code < 0xE000
-
-
-def _safe_name(name: str) -> str:
-    """A recording's name (a manifest's ``name``, a file stem, a folder's name) as one folder name inside
-    ``--out``: separators, control characters and bytes that are not UTF-8 become ``_``; empty, ``.`` and
-    ``..`` become ``recording``."""
-    cleaned = "".join("_" if _unsafe(ch) else ch for ch in name).strip()
-    return "recording" if cleaned in ("", ".", "..") else cleaned
-
-
-def _default_name(source: str) -> str:
-    """The name of a recording whose name is not given: a glob's folder, a folder's name, a file's stem."""
-    if _is_glob(source):
-        return _safe_name(Path(source).parent.name or "images")
-    path = Path(source)
-    return _safe_name(path.resolve().name if path.is_dir() else path.stem)
-
-
-def read_manifest(path: Path) -> list[Recording]:
-    """The recordings of a manifest CSV (see the module doc); InputError (exit 2) naming the file and row."""
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as handle:
-            reader = csv.DictReader(handle)
-            columns = [c.strip().lower() for c in reader.fieldnames or []]
-            if "source" not in columns:
-                raise InputError(f"--manifest {printable(path)}: no 'source' column (columns: {', '.join(columns)})")
-            unknown = [c for c in columns if c not in MANIFEST_COLUMNS]
-            if unknown:
-                raise InputError(
-                    f"--manifest {printable(path)}: unknown column {unknown[0]!r} "
-                    f"(known: {', '.join(MANIFEST_COLUMNS)})"
-                )
-            rows = [{k.strip().lower(): (v or "").strip() for k, v in row.items() if k is not None} for row in reader]
-    except (OSError, UnicodeDecodeError, csv.Error) as err:
-        raise InputError(f"--manifest {printable(path)}: cannot read it ({err})") from None
-    base = path.parent
-
-    def resolved(text: str) -> str:
-        return text if os.path.isabs(text) else str(base / text)
-
-    recordings, names = [], []
-    for number, row in enumerate(rows, start=2):  # (line 1: the header)
-        if not any(row.values()):
-            continue
-        if not row.get("source"):
-            raise InputError(f"--manifest {printable(path)}: line {number}: empty source")
-        source = resolved(row["source"])
-        if _is_glob(source):
-            _check_manifest_glob(path, number, source)
-        elif not (Path(source).is_file() or Path(source).is_dir()):
-            raise InputError(
-                f"--manifest {printable(path)}: line {number}: {printable(source)}: {_not_a_source(Path(source))}"
-            )
-        camera = Path(resolved(row["camera"])) if row.get("camera") else None
-        config = Path(resolved(row["config"])) if row.get("config") else None
-        for column, file in (("camera", camera), ("config", config)):
-            if file is not None and not file.is_file():
-                raise InputError(
-                    f"--manifest {printable(path)}: line {number}: {column} {printable(file)}: "
-                    f"{_not_a_file(file, 'a regular file')}"
-                )
-        name = _safe_name(row["name"]) if row.get("name") else _default_name(source)
-        recordings.append(Recording(source, name, camera, config))
-        names.append(name)
-    if not recordings:
-        raise InputError(f"--manifest {printable(path)}: no recordings in it")
-    return [Recording(r.source, n, r.camera, r.config) for r, n in zip(recordings, _unique(names), strict=True)]
-
-
-def _check_manifest_glob(manifest: Path, number: int, pattern: str) -> None:
-    """A manifest row's glob is one image sequence (as ``replay`` takes it): it must match an image file."""
-    matches = [p for p in glob.glob(pattern) if Path(p).is_file()]
-    if any(Path(p).suffix.lower() in IMAGE_EXTENSIONS for p in matches):
-        return
-    where = f"--manifest {printable(manifest)}: line {number}: {printable(pattern)}"
-    if not matches:
-        raise InputError(f"{where}: no file matches this pattern")
-    raise InputError(
-        f"{where}: the pattern matches {len(matches)} file(s), none an image (a glob in a manifest row is one "
-        "image sequence; list videos one per row)"
-    )
-
-
-def find_recordings(sources: Sequence[str], manifest: Path | None) -> list[Recording]:
-    """The recordings of the SOURCE arguments (or of ``manifest``), uniquely named; InputError when none."""
-    if manifest is not None:
-        if sources:
-            raise InputError("give SOURCE arguments or --manifest, not both")
-        return read_manifest(manifest)
-    if not sources:
-        raise InputError("no SOURCE given (video files, folders, quoted globs) and no --manifest")
-    found: list[tuple[str, str]] = []
-    seen: set[str] = set()
-    for text in sources:
-        for source, name in _expand(text):
-            key = os.path.abspath(source)
-            if key not in seen:  # the same file named twice (a glob and a folder): replayed once
-                seen.add(key)
-                found.append((source, name))
-    names = _unique([name for _, name in found])
-    return [Recording(source, name) for (source, _), name in zip(found, names, strict=True)]
-
-
-# ============================================================================ what a run is judged by
-
-
-def _file_print(path: Path) -> list[Any]:
-    try:
-        stat = path.stat()
-    except OSError:
-        return [str(path), None, None]
-    return [str(path.resolve()), stat.st_size, stat.st_mtime_ns]
-
-
-def _source_files(source: str) -> list[Path]:
-    if _is_glob(source):
-        return sorted(Path(p) for p in glob.glob(source))
-    path = Path(source)
-    if path.is_dir():  # (its images only: nothing else in the folder is a frame)
-        return sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
-    return [path]
-
-
-def fingerprint(recording: Recording, options: dict[str, Any]) -> str:
-    """What decides whether a finished run still stands: the source's files (path, size, modification
-    time), the camera and config files (and a camera.yml beside the source, replay's default) and the
-    options handed to replay; a SHA-256 hex digest."""
-    files = _source_files(recording.source)
-    camera = recording.camera or options.get("camera") or Path(recording.source).parent / "camera.yml"
-    config = recording.config or options.get("config")
-    what = {
-        "source": os.path.abspath(recording.source),
-        "files": [_file_print(p) for p in files],
-        "camera": _file_print(Path(camera)),
-        "config": _file_print(Path(config)) if config else None,
-        "options": {k: str(v) for k, v in sorted(options.items())},
-    }
-    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
-
-
-def previous_row(out_dir: Path, stamp: str) -> dict[str, Any] | None:
-    """The row of a completed earlier run in ``out_dir`` with the same fingerprint ``stamp``, else None."""
-    try:
-        summary = json.loads((out_dir / "summary.json").read_text())
-        saved = json.loads((out_dir / STAMP_FILE).read_text())
-    except (OSError, ValueError):
-        return None
-    if summary.get("status") != "completed" or saved.get("fingerprint") != stamp:
-        return None
-    row = saved.get("row")
-    if not isinstance(row, dict) or row.get("status") != "ok" or not (out_dir / "poses.csv").is_file():
-        return None
-    return row
-
-
-# ============================================================================ the runs table
-
-COLUMNS: tuple[tuple[str, str], ...] = (
-    ("name", "string"),
-    ("source", "string"),
-    ("status", "string"),
-    ("error", "string"),
-    ("frames", "int64"),
-    ("frames_with_markers", "int64"),
-    ("fps", "float64"),
-    ("detection_rate", "float64"),
-    ("tracked_fraction", "float64"),
-    ("ambiguous_fraction", "float64"),
-    ("lost_fraction", "float64"),
-    ("targets", "string"),
-    ("wrong_frame_rate", "float64"),
-    ("rotation_error_p95_deg", "float64"),
-    ("pair_frames", "int64"),
-    ("pair_flip_pct", "float64"),
-    ("relative_rotation_rms_deg", "float64"),
-    ("wall_s", "float64"),
-    ("out", "string"),
-)
-
-
-def empty_row(recording: Recording, out_dir: Path) -> dict[str, Any]:
-    """A row with every column, figures None."""
-    row: dict[str, Any] = dict.fromkeys(name for name, _ in COLUMNS)
-    row.update(name=recording.name, source=recording.source, out=str(out_dir))
-    return row
-
-
-def _pyarrow() -> Any:
-    """``pyarrow`` (and its parquet module loaded), or None when it is not installed."""
-    try:
-        import pyarrow
-        import pyarrow.parquet  # noqa: F401
-    except ImportError:
-        return None
-    return pyarrow
-
-
-def runs_path(out: Path) -> Path:
-    """The runs table a batch into ``out`` writes: ``runs.parquet``, or ``runs.csv`` without pyarrow."""
-    return out / (RUNS_FILE if _pyarrow() is not None else RUNS_CSV)
-
-
-_TABLE_KEYS = frozenset({"name", "source", "status", "error", "out"})  # every batch's table has these columns
-
-
-def _is_runs_table(path: Path) -> bool:
-    """Is ``path`` a runs table a batch wrote (a regular file, not a link, with the table's columns)?"""
-    if path.is_symlink() or not path.is_file():
-        return False
-    try:
-        if path.suffix == ".parquet":
-            names = _pyarrow().parquet.read_schema(path).names
-        else:
-            with open(path, newline="", encoding="utf-8") as handle:
-                names = next(csv.reader(handle), [])
-    except Exception:  # noqa: BLE001 - whatever it is, it is no table of ours
-        return False
-    return _TABLE_KEYS <= set(names)
-
-
-def _text(value: Any) -> Any:
-    """A string made writable as UTF-8 (bytes of a file name that is not UTF-8 spelled ``\\udcff``)."""
-    return value.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(value, str) else value
-
-
-def write_runs(out: Path, rows: list[dict[str, Any]]) -> Path:
-    """``out/runs.parquet`` (pyarrow) or ``out/runs.csv`` (without it), rows in the recordings' order; written
-    to a temporary file of its own and renamed over the old table. The path written; a failure to write it
-    is an :class:`~ar_anchor.errors.OutputError` naming it."""
-    import secrets
-
-    from ..run.outputs import write_failure
-
-    pa = _pyarrow()
-    path = runs_path(out)
-    cells = [{name: _text(row.get(name)) for name, _ in COLUMNS} for row in rows]
-    tmp = out / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"  # (a new file: never one of the user's)
-    try:
-        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
-    except OSError as err:
-        raise write_failure(path, err) from None
-    try:
-        if pa is not None:
-            schema = pa.schema([(column, getattr(pa, kind)()) for column, kind in COLUMNS])
-            pa.parquet.write_table(pa.Table.from_pylist(cells, schema=schema), tmp)
-        else:
-            with open(tmp, "w", newline="", encoding="utf-8") as handle_:
-                writer = csv.DictWriter(handle_, [column for column, _ in COLUMNS])
-                writer.writeheader()
-                for row in cells:
-                    writer.writerow({column: "" if value is None else value for column, value in row.items()})
-        os.replace(tmp, path)
-    except OSError as err:
-        raise write_failure(path, err) from None
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
-
-
 # ============================================================================ the command
 
 
@@ -510,17 +173,6 @@ def check_cameras(recordings: Sequence[Recording], camera: Path | None, assumed:
                 f"--manifest), the calibration of the camera that took it (none at {printable(beside)}); without "
                 "one, --focal-px F or --hfov-deg A gives approximate distances"
             )
-
-
-def _image_folder(source: str) -> Path | None:
-    """The folder whose files are the frames of an image recording (a folder or a glob); None for a video."""
-    if _is_glob(source):
-        return Path(source).parent
-    return Path(source) if Path(source).is_dir() else None
-
-
-def _inside(path: Path, folder: Path) -> bool:
-    return path == folder or folder in path.parents
 
 
 def _run_command(folder: Path) -> str:
@@ -620,7 +272,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 def _run_batch(args: argparse.Namespace, out: Path, recordings: list[Recording]) -> int:
     """The batch, once ``out`` is checked and locked: the replays, then the runs table; the exit code."""
-    from .batch_task import BatchTask, ray_session
+    from .batch_task import BatchTask, ray_session, usable_cores
 
     ray_address = args.ray
     options = replay_options(args)
@@ -717,60 +369,6 @@ def _replay_all(
               file=sys.stderr)  # fmt: skip
         return EXIT_FAILURE
     return EXIT_OK
-
-
-def format_runs(rows: list[dict[str, Any]], out: Path) -> str:
-    """The batch's table on the console: one line per recording (name, frames, status, frames with markers,
-    speed, wall time, output folder), its columns explained below it."""
-
-    def cell(value: Any, form: str) -> str:
-        return "-" if value is None else format(value, form)
-
-    width = max([len("recording"), *(len(printable(row["name"])) for row in rows)])
-    header = f"{'recording':<{width}} {'frames':>7} {'status':<11} {'markers in':<12} {'fps':>7} {'wall s':>7}  output"
-    lines = [header, "-" * len(header)]
-    for row in rows:
-        frames, markers = row.get("frames"), row.get("frames_with_markers")
-        found = "-" if frames is None or markers is None else f"{markers} of {frames}"
-        folder = Path(row.get("out") or out / row["name"])
-        here = Path.cwd()
-        shown = f"{printable(folder.relative_to(here) if _inside(folder, here) else folder)}/"
-        lines.append(
-            f"{printable(row['name']):<{width}} {cell(frames, 'd'):>7} {printable(row['status']):<11} {found:<12} "
-            f"{cell(row.get('fps'), '.1f'):>7} {cell(row.get('wall_s'), '.1f'):>7}  {shown}"
-        )
-    lines += [
-        "markers in: frames with markers found, of the frames replayed; fps: frames tracked per second;",
-        "  wall s: the replay's time, start to end (skipped: its earlier run's)",
-    ]
-    return "\n".join(lines)
-
-
-def _outputs_line(out: Path, table: Path, rows: list[dict[str, Any]]) -> str:
-    """The batch's last line: its table, then each run's folder with the files in it (every part of a split
-    recording), for the recordings replayed now or before (skipped)."""
-    from .report import run_files
-
-    folders = []
-    for row in rows:
-        folder = out / row["name"]
-        if row["status"] not in ("ok", "skipped") or not folder.is_dir():
-            continue
-        try:
-            summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            summary = {}
-        names = [*run_files(folder, summary), *([STAMP_FILE] if (folder / STAMP_FILE).is_file() else [])]
-        folders.append(f"{printable(row['name'])}/ ({', '.join(names)})")
-    return f"outputs: {printable(out)}/ ({', '.join([printable(table.name), *folders])})"
-
-
-def usable_cores() -> int:
-    """The CPUs this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:
-        return max(1, os.cpu_count() or 1)
 
 
 def _bar(enabled: bool, total: int, done: int) -> Any:

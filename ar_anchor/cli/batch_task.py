@@ -44,7 +44,9 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ArAnchorError, InputError, printable
-from .batch import STAMP_FILE, Recording, empty_row, usable_cores
+from ..targets import TargetId
+from .recordings import STAMP_FILE, Recording
+from .runs_table import empty_row
 
 log = logging.getLogger(__name__)
 
@@ -71,11 +73,11 @@ class BatchTask:
 def _log_to_stderr(name: str, verbose: int) -> None:
     """The ``ar_anchor`` loggers of this process to stderr, each line naming the recording."""
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
-    from .main import _escaped_message
+    from .terminal import escaped_message
 
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter(f"ar-anchor: {printable(name)}: %(levelname)s: %(message)s"))
-    handler.addFilter(_escaped_message)  # (a file name's newline or ANSI escape is shown, not obeyed)
+    handler.addFilter(escaped_message)  # (a file name's newline or ANSI escape is shown, not obeyed)
     root = logging.getLogger("ar_anchor")
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -98,6 +100,17 @@ def _finite(value: Any) -> float | None:
     return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
 
 
+def _is_learned_group(name: str) -> bool:
+    """Is the target ``name`` (a key of ``summary.json``'s ``targets``) a learned group's board?"""
+    from ..track.groups import GROUP_PREFIX
+
+    try:
+        target = TargetId.parse(name)
+    except ValueError:
+        return False
+    return target.kind == "board" and target.name.startswith(GROUP_PREFIX)
+
+
 def fill_row(row: dict[str, Any], out_dir: Path, *, rigid_sheet: bool) -> None:
     """The row's figures from the run's ``summary.json`` (and ``poses.csv`` for the pair flips)."""
     try:
@@ -111,10 +124,8 @@ def fill_row(row: dict[str, Any], out_dir: Path, *, rigid_sheet: bool) -> None:
     row["detection_rate"] = _fraction(summary.get("frames_with_pose") or 0, frames)
     targets = summary.get("targets") or {}
     counts: dict[str, dict[str, int]] = {}
-    from ..track.groups import GROUP_PREFIX
-
     for name, entry in targets.items():
-        if name.startswith(f"board:{GROUP_PREFIX}"):
+        if _is_learned_group(name):
             continue  # a learned group (--learn-groups) lives for part of the run by design: not "lost" before it
         states = {state: int(n) for state, n in (entry.get("states") or {}).items()}
         states["lost"] = max(0, frames - sum(states.values()))
@@ -145,7 +156,8 @@ def replay_recording(task: BatchTask, *, single_thread: bool = False) -> dict[st
     ``single_thread``: OpenCV on one thread (several recordings share the cores)."""
     import cv2
 
-    from .main import build_parser
+    from . import replay
+    from .options import base_parser
 
     if single_thread and os.environ.get(KEEP_THREADS) != "1":
         cv2.setNumThreads(1)
@@ -155,7 +167,9 @@ def replay_recording(task: BatchTask, *, single_thread: bool = False) -> dict[st
     (task.out_dir / STAMP_FILE).unlink(missing_ok=True)  # (it would vouch for outputs this run replaces)
     captured = io.StringIO()
     try:
-        args = build_parser().parse_args(["-q", "replay", task.recording.source])
+        parser, commands = base_parser()  # (the ar-anchor parser with replay alone: its options, their defaults)
+        replay.add_parser(commands)
+        args = parser.parse_args(["-q", "replay", task.recording.source])
         vars(args).update(task.options)
         args.out, args.quiet = task.out_dir, True
         args.batch_warned = True  # (what every recording shares, e.g. an assumed camera, the batch said once)
@@ -519,3 +533,11 @@ def _ray_collect(
                 row = _failed(task, "interrupted" if cancelled else f"ray: {type(err).__name__}: {printable(first)}",
                               "interrupted" if cancelled else "failed")  # fmt: skip
             done(row)
+
+
+def usable_cores() -> int:
+    """The CPUs this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)

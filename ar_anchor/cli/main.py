@@ -21,7 +21,6 @@ from . import terminal
 
 if TYPE_CHECKING:
     import argparse
-    import logging
     from collections.abc import Sequence
 
 __all__ = ["build_parser", "main"]
@@ -29,31 +28,14 @@ __all__ = ["build_parser", "main"]
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``ar-anchor`` parser: the common options and every command's subparser."""
-    import argparse
-
-    from .. import __version__
     from . import batch, bench, demo, export, live, replay, tools, view
-    from .options import add_common_options
+    from .options import base_parser
 
-    parser = argparse.ArgumentParser(
-        prog="ar-anchor",
-        description="Real-time fiducial-marker AR tracker (ArUco + IPPE + rerun).",
-        allow_abbrev=False,
-    )
-    parser.add_argument("--version", action="version", version=f"ar-anchor {__version__}")
-    add_common_options(parser, defaults=True)
-    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parser, commands = base_parser()
     for command in (demo, replay, batch, live, bench, export, view):
         command.add_parser(commands)
     tools.add_parsers(commands)
     return parser
-
-
-def _escaped_message(record: logging.LogRecord) -> bool:
-    """A logging filter: the message escaped (:func:`~ar_anchor.errors.printable`), so that a file name holding
-    a newline or an ANSI escape is shown, not obeyed (a -vv traceback below it stays as it is)."""
-    record.msg, record.args = printable(record.getMessage()), None
-    return True
 
 
 def _setup_logging(verbosity: int) -> None:
@@ -62,7 +44,7 @@ def _setup_logging(verbosity: int) -> None:
     level = logging.WARNING if verbosity == 0 else logging.INFO if verbosity == 1 else logging.DEBUG
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("ar-anchor: %(levelname)s: %(message)s"))
-    handler.addFilter(_escaped_message)
+    handler.addFilter(terminal.escaped_message)
     root = logging.getLogger("ar_anchor")
     root.handlers[:] = [handler]
     root.setLevel(level)

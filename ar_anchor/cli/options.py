@@ -14,6 +14,22 @@ from typing import Any
 from ..units import length_option as length  # the argparse type of every length option
 
 
+def base_parser() -> tuple[argparse.ArgumentParser, Any]:
+    """The ``ar-anchor`` parser with the common options and no command yet: the parser and its subparsers, to
+    which the commands add theirs (:func:`~.main.build_parser` every command; a batch task ``replay`` alone)."""
+    from .. import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="ar-anchor",
+        description="Real-time fiducial-marker AR tracker (ArUco + IPPE + rerun).",
+        allow_abbrev=False,
+    )
+    parser.add_argument("--version", action="version", version=f"ar-anchor {__version__}")
+    add_common_options(parser, defaults=True)
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    return parser, commands
+
+
 def int_at_least(minimum: int):
     """An argparse type: an integer ``>= minimum``."""
 

@@ -28,10 +28,12 @@ from typing import TYPE_CHECKING, Any
 from ..errors import EXIT_INTERRUPTED, printable
 
 if TYPE_CHECKING:
+    import logging
     from collections.abc import Iterator
 
 __all__ = [
     "Signals",
+    "escaped_message",
     "guarded_stdout",
     "interrupted_outputs",
     "quiet_libraries",
@@ -227,3 +229,10 @@ def warnings_to_log() -> Iterator[None]:
     with warnings.catch_warnings():
         warnings.showwarning = _log_warning
         yield
+
+
+def escaped_message(record: logging.LogRecord) -> bool:
+    """A logging filter: the message escaped (:func:`~ar_anchor.errors.printable`), so that a file name holding
+    a newline or an ANSI escape is shown, not obeyed (a -vv traceback below it stays as it is)."""
+    record.msg, record.args = printable(record.getMessage()), None
+    return True

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,33 @@ from .options import SameLength, add_command, int_at_least, length, positive_flo
 
 def add_parsers(commands: Any) -> None:
     """The ``markers``, ``calibrate``, ``study`` and ``map`` commands' options."""
+    add_markers_parser(commands)
+    add_calibrate_parser(commands)
+    add_study_parser(commands)
+    add_map_parser(commands)
+
+
+def add_length_option(
+    parser: argparse.ArgumentParser,
+    option: str,
+    alias: str,
+    *,
+    dest: str,
+    kind: Callable[[str], float],
+    alias_kind: Callable[[str], float],
+    help: str,
+    alias_help: str,
+) -> None:
+    """A length option and its older alias, one after the other: one destination, each its own type (a bare
+    number's unit), and given both, they must agree (:class:`~.options.SameLength`)."""
+    parser.add_argument(option, dest=dest, action=SameLength, type=kind, default=None, metavar="LENGTH", help=help)
+    parser.add_argument(
+        alias, dest=dest, action=SameLength, type=alias_kind, default=None, metavar="LENGTH", help=alias_help
+    )
+
+
+def add_markers_parser(commands: Any) -> None:
+    """The ``markers`` command's options."""
     markers = add_command(
         commands,
         "markers",
@@ -27,23 +55,15 @@ def add_parsers(commands: Any) -> None:
         help="cv2.aruco dictionary, e.g. 4x4_50 or tag36h11 (default DICT_4X4_50)",
     )
     markers.add_argument("--ids", default=None, help="single markers: ids, e.g. 0-3 or 0,5,7 or 0-3,9")
-    markers.add_argument(
+    add_length_option(
+        markers,
         "--marker-length",
-        dest="size_mm",
-        action=SameLength,
-        type=length("m", to="mm"),
-        default=None,
-        metavar="LENGTH",
-        help="marker side (the black square), e.g. 50mm or 5cm (a bare number is metres)",
-    )
-    markers.add_argument(
         "--size-mm",
         dest="size_mm",
-        action=SameLength,
-        type=length("mm"),
-        default=None,
-        metavar="LENGTH",
-        help="the same as --marker-length, a bare number in mm",
+        kind=length("m", to="mm"),
+        alias_kind=length("mm"),
+        help="marker side (the black square), e.g. 50mm or 5cm (a bare number is metres)",
+        alias_help="the same as --marker-length, a bare number in mm",
     )
     markers.add_argument("--board", choices=("grid", "charuco"), default=None, help="print a board instead")
     markers.add_argument("--cols", type=int_at_least(1), default=None, help="board: markers (grid) or squares across")
@@ -55,23 +75,15 @@ def add_parsers(commands: Any) -> None:
         metavar="LENGTH",
         help="grid: gap between markers, e.g. 10mm or 1cm (a bare number is mm)",
     )
-    markers.add_argument(
+    add_length_option(
+        markers,
         "--square-length",
-        dest="square_mm",
-        action=SameLength,
-        type=length("m", to="mm"),
-        default=None,
-        metavar="LENGTH",
-        help="charuco: chessboard square side, e.g. 30mm or 3cm (a bare number is metres)",
-    )
-    markers.add_argument(
         "--square-mm",
         dest="square_mm",
-        action=SameLength,
-        type=length("mm"),
-        default=None,
-        metavar="LENGTH",
-        help="the same as --square-length, a bare number in mm",
+        kind=length("m", to="mm"),
+        alias_kind=length("mm"),
+        help="charuco: chessboard square side, e.g. 30mm or 3cm (a bare number is metres)",
+        alias_help="the same as --square-length, a bare number in mm",
     )
     markers.add_argument("--first-id", type=int_at_least(0), default=0, help="board: id of its first marker")
     markers.add_argument("--legacy", action="store_true", help="charuco: the legacy (pre-4.6) pattern")
@@ -82,6 +94,9 @@ def add_parsers(commands: Any) -> None:
     markers.add_argument("--out", type=Path, default=Path("markers"), help="output directory (default markers/)")
     markers.set_defaults(func=cmd_markers)
 
+
+def add_calibrate_parser(commands: Any) -> None:
+    """The ``calibrate`` command's options."""
     calibrate = add_command(
         commands,
         "calibrate",
@@ -101,39 +116,25 @@ def add_parsers(commands: Any) -> None:
         "agree with it)",
     )
     calibrate.add_argument("--charuco", default=None, metavar="CxR", help="board squares across x down, e.g. 5x7")
-    calibrate.add_argument(
+    add_length_option(
+        calibrate,
         "--square-length",
-        dest="square_m",
-        action=SameLength,
-        type=length("m"),
-        default=None,
-        metavar="LENGTH",
-        help="chessboard square side, e.g. 30mm or 3cm (a bare number is metres)",
-    )
-    calibrate.add_argument(
         "--square-m",
         dest="square_m",
-        action=SameLength,
-        type=length("m"),
-        metavar="LENGTH",
-        help="the same as --square-length (its older name)",
+        kind=length("m"),
+        alias_kind=length("m"),
+        help="chessboard square side, e.g. 30mm or 3cm (a bare number is metres)",
+        alias_help="the same as --square-length (its older name)",
     )
-    calibrate.add_argument(
+    add_length_option(
+        calibrate,
         "--marker-length",
-        dest="marker_m",
-        action=SameLength,
-        type=length("m"),
-        default=None,
-        metavar="LENGTH",
-        help="marker side, e.g. 22mm (a bare number is metres)",
-    )
-    calibrate.add_argument(
         "--marker-m",
         dest="marker_m",
-        action=SameLength,
-        type=length("m"),
-        metavar="LENGTH",
-        help="the same as --marker-length (its older name)",
+        kind=length("m"),
+        alias_kind=length("m"),
+        help="marker side, e.g. 22mm (a bare number is metres)",
+        alias_help="the same as --marker-length (its older name)",
     )
     calibrate.add_argument(
         "--dictionary", default=None, help="cv2.aruco dictionary of the board's markers, e.g. 6x6_250 or DICT_6X6_250"
@@ -155,6 +156,10 @@ def add_parsers(commands: Any) -> None:
         "--duration-s", type=positive_float, default=60.0, help="device: stop capturing after this long (default 60)"
     )
     calibrate.set_defaults(func=cmd_calibrate)
+
+
+def add_study_parser(commands: Any) -> None:
+    """The ``study`` command's options (:mod:`ar_anchor.tools.study.options`)."""
     study = add_command(
         commands,
         "study",
@@ -165,7 +170,6 @@ def add_parsers(commands: Any) -> None:
 
     configure_study(study)
     study.set_defaults(func=cmd_study)
-    add_map_parser(commands)
 
 
 def add_map_parser(commands: Any) -> None:

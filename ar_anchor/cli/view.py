@@ -116,6 +116,12 @@ def add_parser(commands: Any) -> None:
         "any of them can read the recordings and write entries into them). Any other address shows the "
         "recordings, unauthenticated, to whoever reaches it on the network",
     )
+    _add_screenshot_options(view)
+    view.set_defaults(func=cmd_view)
+
+
+def _add_screenshot_options(view: Any) -> None:
+    """``view``'s screenshot options, in a group of their own."""
     shot = view.add_argument_group(
         "screenshot",
         "a PNG of the web viewer showing the recording (every part of a split run) at one frame, taken in headless "
@@ -155,7 +161,6 @@ def add_parser(commands: Any) -> None:
     shot.add_argument(
         "--chromium", metavar="PATH", help="--screenshot: the Chromium binary (default: chromium on PATH)"
     )
-    view.set_defaults(func=cmd_view)
 
 
 def window_size(text: str) -> tuple[int, int]:

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from ..boards import layout_from_mapping, read_layout
-from ..camera import input_file_problem
+from ..camera.files import input_file_problem
 from ..errors import ConfigError, printable
 from .board import BOARD_KEYS, BoardConfig, BoardKeys, CharucoBoardKeys, CustomBoardKeys
 from .dictionaries import canonical_dictionary, dictionary_size

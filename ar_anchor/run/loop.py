@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..camera import opencv_path_problem
+from ..camera.files import opencv_path_problem
 from ..errors import ArAnchorError, InputError, OutputError, printable
 from ..render.overlay import OverlayRenderer
 from ..render.video import SUPPORTED_EXTENSIONS

@@ -25,7 +25,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..camera import CameraModel, opencv_path_problem
+from ..camera import CameraModel
+from ..camera.files import opencv_path_problem
 from ..errors import SourceError, printable
 from ..lazy import import_held
 from .base import ClosingSource, Frame, SourceInfo

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from ar_anchor.cli import batch
-from ar_anchor.cli.batch import Recording, find_recordings, read_manifest, write_runs
+from ar_anchor.cli import runs_table
+from ar_anchor.cli.recordings import Recording, find_recordings, read_manifest
+from ar_anchor.cli.runs_table import write_runs
 from ar_anchor.errors import InputError
 from tests.helpers import run_main
 
@@ -141,7 +142,7 @@ def test_a_source_after_ray_is_not_taken_for_its_address(tmp_path):
 def test_the_runs_table_is_csv_without_pyarrow(tmp_path, monkeypatch):
     # given no pyarrow
     monkeypatch.setitem(sys.modules, "pyarrow", None)
-    row = batch.empty_row(Recording("a.mp4", "a"), tmp_path / "a")
+    row = runs_table.empty_row(Recording("a.mp4", "a"), tmp_path / "a")
     row.update(status="failed", error="broken", frames=3)
     # when
     path = write_runs(tmp_path, [row])
@@ -330,7 +331,7 @@ def test_a_row_holds_the_summary_figures_and_with_rigid_sheet_the_pair_flips(tmp
     header = "frame,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z\n"
     lines = [f"{f},marker:{m},tracked,0,0,0.0{f % 3},{0.1 * m},0,1\n" for f in range(15) for m in (0, 1)]
     (tmp_path / "poses.csv").write_text(header + "".join(lines))
-    row = batch.empty_row(Recording("a.mp4", "a"), tmp_path)
+    row = runs_table.empty_row(Recording("a.mp4", "a"), tmp_path)
     # when
     fill_row(row, tmp_path, rigid_sheet=True)
     # then

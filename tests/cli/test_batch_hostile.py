@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from ar_anchor.cli.batch import RUNS_FILE, find_recordings, read_manifest
+from ar_anchor.cli.recordings import RUNS_FILE, find_recordings, read_manifest
 from ar_anchor.errors import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from tests.helpers import assert_clean_exit, run_main
 

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ar_anchor.camera import FORMATS_READ, CameraModel
+from ar_anchor.camera import CameraModel
+from ar_anchor.camera.files import FORMATS_READ
 from ar_anchor.errors import CameraError
 
 K = [905.25, 0.0, 641.5, 0.0, 903.75, 398.25, 0.0, 0.0, 1.0]

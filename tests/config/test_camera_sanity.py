@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ar_anchor.camera import MAX_FILE_BYTES, CameraModel
+from ar_anchor.camera import CameraModel
+from ar_anchor.camera.files import MAX_FILE_BYTES
 from ar_anchor.config import TrackerConfig, load_config, parse_config
 from ar_anchor.errors import CameraError, ConfigError
 from ar_anchor.render.overlay import OverlayRenderer, unmatched_target_problem

@@ -27,7 +27,8 @@ from ar_anchor.track.detection import MarkerDetections
 from ar_anchor.track.tracker import FrameResult, TargetResult
 from ar_anchor.viz import viewer
 from ar_anchor.viz.blueprints import calibrate_blueprint, run_blueprint, study_blueprint
-from ar_anchor.viz.recorder import IMAGE, OVERLAY_IMAGE, RerunRecorder, image_from_camera
+from ar_anchor.viz.pinhole import image_from_camera
+from ar_anchor.viz.recorder import IMAGE, OVERLAY_IMAGE, RerunRecorder
 from ar_anchor.viz.sinks import Recording
 from tests.helpers import distorted_camera
 
