@@ -199,8 +199,7 @@ def _offline_section(results: list[dict[str, Any]], meta: dict[str, Any]) -> lis
     if not meta.get("offline_scenarios"):
         return []
     return [
-        f"## Offline replay vs causal ({meta['offline_passed']} of {meta['offline_scenarios']} "
-        "scenarios pass)",
+        f"## Offline replay vs causal ({meta['offline_passed']} of {meta['offline_scenarios']} scenarios pass)",
         "",
         "The offline replay (`ar_anchor.track.offline.smooth`: the flip filter run forwards and backwards, each "
         "frame decided with the whole recording, steady gaps bridged as `interpolated`) on the same frames as the "
