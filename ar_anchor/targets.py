@@ -40,6 +40,8 @@ class TargetId(str):
             raise ValueError(f"a marker id is a non-negative integer, got {name!r}")
         if kind == "board" and (not name or ":" in name or "*" in name):
             raise ValueError(f"a board name is non-empty without ':' or '*', got {name!r}")
+        if kind == "marker" and len(name) > 18:  # (Python refuses int() of 4300 digits and more)
+            raise ValueError(f"a marker id has at most 18 digits, got one of {len(name)}")
         if kind == "marker" and name != str(int(name)):
             raise ValueError(f"write marker:{int(name)}, not marker:{name}")
         return super().__new__(cls, f"{kind}:{name}")

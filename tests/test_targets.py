@@ -24,7 +24,9 @@ def test_names_round_trip_and_parts():
     assert marker.path_part == "marker_12"
 
 
-@pytest.mark.parametrize("text", ["marker:x", "marker:-1", "marker:007", "boards:a", "board:", "board:a:b", "7", ""])
+@pytest.mark.parametrize(
+    "text", ["marker:x", "marker:-1", "marker:007", "marker:" + "9" * 5000, "boards:a", "board:", "board:a:b", "7", ""]
+)
 def test_bad_names_are_refused_with_the_reason(text):
     with pytest.raises(ValueError, match="marker|board"):
         TargetId.parse(text)

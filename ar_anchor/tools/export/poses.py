@@ -236,9 +236,6 @@ def _rows(handle, path: Path) -> Iterator[PoseRow]:  # noqa: ANN001 - a text fil
                 f"{printable(cells['timestamp_s'].strip())} s is before frame {previous_frame} at "
                 f"{previous_time / 1e9:.9f} s"
             )
-        kind, _, name = cells["target"].partition(":")
-        if kind == "marker" and len(name) > 18:  # (a marker id: Python refuses int() of 4300 digits and more)
-            raise InputError(f"{_where(path, line, 'target')}: expected a marker id, got {_cell(name)!r}")
         try:
             target = TargetId.parse(cells["target"])
         except ValueError as err:

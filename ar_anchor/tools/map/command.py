@@ -16,6 +16,7 @@ from ...config import ConfigValueError, implausible_length_hint
 from ...config.dictionaries import canonical_dictionary
 from ...errors import ConfigError, InputError, OutputError, SourceError, printable
 from ...run.paths import Named, OutDirLock, check_paths, spec_inputs
+from .model import frame_label
 from .observe import Observed, observe_sources
 from .recording import MapRecording
 from .report import board_snippet, format_report, format_summary, write_layout_toml, write_layout_yaml
@@ -135,14 +136,6 @@ def _check_options(args: argparse.Namespace) -> None:
             raise SourceError(f"{printable(text)}: not found (expected a video file, an image folder or a glob)")
 
 
-def _frame_label(names: list[str], several: bool) -> dict[str, str]:
-    out = {}
-    for name in names:
-        source, frame = name.split(":")
-        out[name] = f"input {int(source) + 1} frame {frame}" if several else f"frame {frame}"
-    return out
-
-
 @contextmanager
 def _claimed(outputs: MapOutputs) -> Iterator[None]:
     """Create the outputs' folders and hold each one's lock (:class:`~ar_anchor.run.paths.OutDirLock`: one run per
@@ -239,7 +232,7 @@ def _run_map(
         origin=getattr(args, "origin", None),
         progress=progress,
     )
-    labels = _frame_label(solution.frame_order + [d[0] for d in solution.dropped], len(sources) > 1)
+    several = len(sources) > 1
     report = format_report(
         solution,
         sources=sources,
@@ -249,7 +242,7 @@ def _run_map(
         step=args.step,
         outputs=outputs.named(),
         layout_name=outputs.primary.name,
-        frame_label=lambda name: labels.get(name, name),
+        frame_label=lambda name: frame_label(name, several),
     )
     recording = MapRecording(outputs.rrd, spawn=bool(getattr(args, "spawn", False)))
     succeeded = False

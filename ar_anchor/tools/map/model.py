@@ -18,6 +18,7 @@ from ...geometry import Pose, marker_corners_in_marker
 __all__ = [
     "FrameObservations",
     "MarkerMap",
+    "frame_label",
     "Similarity",
     "aligned_errors",
     "rms_m",
@@ -61,11 +62,22 @@ class FrameObservations:
 
     @property
     def name(self) -> str:
-        """``frame 12`` (one input) or ``input 2 frame 12`` is how reports name it; this is the short key."""
+        """The short key, ``<input index>:<frame>``; :func:`frame_label` is how reports name it."""
         return f"{self.source}:{self.frame}"
 
     def __len__(self) -> int:
         return len(self.ids)
+
+
+def frame_label(name: str, several: bool) -> str:
+    """A frame's key (:attr:`FrameObservations.name`) as reports name it: ``frame 12``, or ``input 2 frame 12``
+    when the map was made from several inputs.
+
+    >>> frame_label("1:12", several=True), frame_label("0:12", several=False)
+    ('input 2 frame 12', 'frame 12')
+    """
+    source, _, frame = name.partition(":")
+    return f"input {int(source) + 1} frame {frame}" if several else f"frame {frame}"
 
 
 @dataclass(frozen=True)
