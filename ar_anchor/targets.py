@@ -26,7 +26,7 @@ class TargetId(str):
 
     >>> TargetId.marker(3), TargetId.board("desk").kind
     ('marker:3', 'board')
-    >>> sorted([TargetId.marker(10), TargetId.marker(2), TargetId.board("desk")])
+    >>> TargetId.ordered([TargetId.marker(10), "marker:2", TargetId.board("desk")])
     ['board:desk', 'marker:2', 'marker:10']
     """
 
