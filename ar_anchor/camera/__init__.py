@@ -18,22 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import CameraError, OutputError, printable
-from .files import (
-    _PHOTONVISION_LENS,
-    _ROS_DISTORTION_MODELS,
-    FORMATS_READ,
-    MAX_FILE_BYTES,
-    _check_file_bytes,
-    _one_photonvision_calibration,
-    _parse_error,
-    _photonvision_document,
-    _photonvision_mat,
-    _photonvision_resolution,
-    _read_int,
-    _read_mat,
-    opencv_path_problem,
-)
+from ..errors import CameraError, OutputError
+from .files import opencv_path_problem, read_camera_file
 
 __all__ = ["CameraModel", "focal_from_hfov", "hfov_from_focal"]
 
@@ -132,89 +118,14 @@ class CameraModel:
     def from_yaml(cls, path: str | os.PathLike[str]) -> CameraModel:
         """Read a camera file (OpenCV FileStorage YAML, XML or JSON; ROS camera_info YAML; PhotonVision calibration
         JSON); raise :class:`CameraError` naming the file."""
-        path = Path(path)
-        data = _check_file_bytes(path)
-        document = _photonvision_document(data, path)
-        if document is not None:
-            return cls._from_photonvision(document, path)
-        if len(data) > MAX_FILE_BYTES:  # (a larger JSON file was let through to be read as PhotonVision's)
-            raise CameraError(
-                f"camera file {printable(path)}: is {len(data) / 2**20:.0f} MiB, too large to be one "
-                f"(at most {MAX_FILE_BYTES // 2**20} MiB); not read"
-            )
+        values = read_camera_file(Path(path))
         try:
-            storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-        except (cv2.error, SystemError) as err:  # OpenCV 5's binding wraps parse errors in SystemError
-            raise CameraError(
-                f"camera file {printable(path)}: not valid OpenCV YAML/XML/JSON ({_parse_error(err)})"
-            ) from None
-        try:
-            if not storage.isOpened():
-                raise CameraError(
-                    f"camera file {printable(path)}: cannot be parsed as OpenCV FileStorage ({FORMATS_READ})"
-                )
-            if not storage.root().isMap():
-                raise CameraError(f"camera file {printable(path)}: expected key: value pairs at the top level")
-            if storage.getNode("camera_matrix").empty():
-                raise CameraError(
-                    f"camera file {printable(path)}: missing 'camera_matrix', not a camera file ({FORMATS_READ})"
-                )
-            matrix = _read_mat(storage, "camera_matrix", path, required=True)
-            dist = _read_mat(storage, "distortion_coefficients", path, required=False)
-            width = _read_int(storage, "image_width", path)
-            height = _read_int(storage, "image_height", path)
-            model = storage.getNode("distortion_model")  # ROS camera_info
-            if not model.empty() and not model.isNone():
-                name = model.string() if model.isString() else ""
-                if name not in _ROS_DISTORTION_MODELS:
-                    raise CameraError(
-                        f"camera file {printable(path)}: distortion_model {name or '(not a name)'!r} is not supported "
-                        f"(use {' or '.join(_ROS_DISTORTION_MODELS)}: OpenCV's pinhole model)"
-                    )
-        except (cv2.error, SystemError) as err:
-            raise CameraError(f"camera file {printable(path)}: unreadable content ({_parse_error(err)})") from None
-        except UnicodeDecodeError:  # a text value (dt, distortion_model) that is not UTF-8
-            raise CameraError(f"camera file {printable(path)}: not UTF-8 text") from None
-        finally:
-            storage.release()
-        if matrix is not None and matrix.size == 9:
-            matrix = matrix.reshape(3, 3)
-        try:
-            camera = cls(matrix, np.zeros(0) if dist is None else dist, width, height)
+            camera = cls(values.matrix, values.dist, values.width, values.height)
             camera.check_plausible()
         except CameraError as err:
-            raise CameraError(f"camera file {printable(path)}: {err}") from err
-        return camera
-
-    @classmethod
-    def _from_photonvision(cls, document: dict, path: Path) -> CameraModel:
-        """The camera of a PhotonVision calibration (``document``, parsed from ``path``); :class:`CameraError`
-        naming the file and the field at fault."""
-        where = f"camera file {printable(path)} (PhotonVision calibration JSON)"
-        if "cameraIntrinsics" not in document:  # a camera's settings file: its calibrations, one per resolution
-            document = _one_photonvision_calibration(document.get("calibrations"), where)
-        lens = document.get("lensmodel")
-        if lens is not None and lens != _PHOTONVISION_LENS:
-            raise CameraError(
-                f"{where}: lensmodel {printable(lens)!r} is not supported (only {_PHOTONVISION_LENS}: OpenCV's pinhole "
-                "model; recalibrate in PhotonVision with the OpenCV model)"
-            )
-        if document.get("isFisheye") is True:
-            raise CameraError(
-                f"{where}: a fisheye calibration (isFisheye) is not supported: OpenCV's pinhole model only"
-            )
-        width, height = _photonvision_resolution(document.get("resolution"), where)
-        matrix = _photonvision_mat(document, "cameraIntrinsics", where)
-        dist_key = "distCoeffs" if "distCoeffs" in document else "cameraExtrinsics"  # (PhotonVision's older name)
-        dist = _photonvision_mat(document, dist_key, where) if dist_key in document else np.zeros(0)
-        if matrix.size == 9:
-            matrix = matrix.reshape(3, 3)
-        try:
-            camera = cls(matrix, dist.reshape(-1), width, height)
-            camera.check_plausible()
-        except CameraError as err:
-            raise CameraError(f"{where}: {err}") from err
-        log.info("%s: %dx%d, fx %.1f px", where, width, height, camera.camera_matrix[0, 0])
+            raise CameraError(f"{values.where}: {err}") from err
+        if values.photonvision:
+            log.info("%s: %dx%d, fx %.1f px", values.where, camera.width, camera.height, camera.camera_matrix[0, 0])
         return camera
 
     def to_yaml(self, path: str | os.PathLike[str], **extra: str | float | int | np.ndarray) -> None:

@@ -23,6 +23,7 @@ import math
 import os
 import re
 import stat
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -33,9 +34,11 @@ from ..errors import CameraError, printable
 __all__ = [
     "FORMATS_READ",
     "MAX_FILE_BYTES",
+    "CameraFile",
     "filestorage_nesting_problem",
     "input_file_problem",
     "opencv_path_problem",
+    "read_camera_file",
 ]
 
 # ROS camera_info distortion models that are OpenCV's pinhole model (others, e.g. equidistant, are not)
@@ -313,3 +316,91 @@ def _read_int(storage: cv2.FileStorage, key: str, path: Path) -> int:
     if not np.isfinite(value) or value != int(value) or value <= 0:
         raise CameraError(f"camera file {printable(path)}: '{key}' must be a positive integer, got {value:g}")
     return int(value)
+
+
+@dataclass(frozen=True)
+class CameraFile:
+    """A camera file's values as read, before :class:`~ar_anchor.camera.CameraModel` checks them; ``where``
+    names the file (and its format) for messages."""
+
+    where: str
+    matrix: np.ndarray | None
+    dist: np.ndarray
+    width: int
+    height: int
+    photonvision: bool = False
+
+
+def read_camera_file(path: Path) -> CameraFile:
+    """Read a camera file (OpenCV FileStorage YAML, XML or JSON; ROS camera_info YAML; PhotonVision calibration
+    JSON); raise :class:`CameraError` naming the file and what is wrong with it."""
+    data = _check_file_bytes(path)
+    document = _photonvision_document(data, path)
+    if document is not None:
+        return _read_photonvision(document, path)
+    if len(data) > MAX_FILE_BYTES:  # (a larger JSON file was let through to be read as PhotonVision's)
+        raise CameraError(
+            f"camera file {printable(path)}: is {len(data) / 2**20:.0f} MiB, too large to be one "
+            f"(at most {MAX_FILE_BYTES // 2**20} MiB); not read"
+        )
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as err:  # OpenCV 5's binding wraps parse errors in SystemError
+        where = f"camera file {printable(path)}"
+        raise CameraError(f"{where}: not valid OpenCV YAML/XML/JSON ({_parse_error(err)})") from None
+    try:
+        return _read_filestorage(storage, path)
+    except (cv2.error, SystemError) as err:
+        raise CameraError(f"camera file {printable(path)}: unreadable content ({_parse_error(err)})") from None
+    except UnicodeDecodeError:  # a text value (dt, distortion_model) that is not UTF-8
+        raise CameraError(f"camera file {printable(path)}: not UTF-8 text") from None
+    finally:
+        storage.release()
+
+
+def _read_filestorage(storage: cv2.FileStorage, path: Path) -> CameraFile:
+    """An opened OpenCV (or ROS camera_info) camera file's values."""
+    if not storage.isOpened():
+        raise CameraError(f"camera file {printable(path)}: cannot be parsed as OpenCV FileStorage ({FORMATS_READ})")
+    if not storage.root().isMap():
+        raise CameraError(f"camera file {printable(path)}: expected key: value pairs at the top level")
+    if storage.getNode("camera_matrix").empty():
+        raise CameraError(f"camera file {printable(path)}: missing 'camera_matrix', not a camera file ({FORMATS_READ})")
+    matrix = _read_mat(storage, "camera_matrix", path, required=True)
+    dist = _read_mat(storage, "distortion_coefficients", path, required=False)
+    width = _read_int(storage, "image_width", path)
+    height = _read_int(storage, "image_height", path)
+    model = storage.getNode("distortion_model")  # ROS camera_info
+    if not model.empty() and not model.isNone():
+        name = model.string() if model.isString() else ""
+        if name not in _ROS_DISTORTION_MODELS:
+            raise CameraError(
+                f"camera file {printable(path)}: distortion_model {name or '(not a name)'!r} is not supported "
+                f"(use {' or '.join(_ROS_DISTORTION_MODELS)}: OpenCV's pinhole model)"
+            )
+    if matrix is not None and matrix.size == 9:
+        matrix = matrix.reshape(3, 3)
+    return CameraFile(f"camera file {printable(path)}", matrix, np.zeros(0) if dist is None else dist, width, height)
+
+
+def _read_photonvision(document: dict, path: Path) -> CameraFile:
+    """The values of a PhotonVision calibration (``document``, parsed from ``path``); :class:`CameraError`
+    naming the file and the field at fault."""
+    where = f"camera file {printable(path)} (PhotonVision calibration JSON)"
+    if "cameraIntrinsics" not in document:  # a camera's settings file: its calibrations, one per resolution
+        document = _one_photonvision_calibration(document.get("calibrations"), where)
+    lens = document.get("lensmodel")
+    if lens is not None and lens != _PHOTONVISION_LENS:
+        raise CameraError(
+            f"{where}: lensmodel {printable(lens)!r} is not supported (only {_PHOTONVISION_LENS}: OpenCV's pinhole "
+            "model; recalibrate in PhotonVision with the OpenCV model)"
+        )
+    if document.get("isFisheye") is True:
+        raise CameraError(f"{where}: a fisheye calibration (isFisheye) is not supported: OpenCV's pinhole model only")
+    width, height = _photonvision_resolution(document.get("resolution"), where)
+    matrix = _photonvision_mat(document, "cameraIntrinsics", where)
+    dist_key = "distCoeffs" if "distCoeffs" in document else "cameraExtrinsics"  # (PhotonVision's older name)
+    dist = _photonvision_mat(document, dist_key, where) if dist_key in document else np.zeros(0)
+    if matrix.size == 9:
+        matrix = matrix.reshape(3, 3)
+    return CameraFile(where, matrix, dist.reshape(-1), width, height, photonvision=True)

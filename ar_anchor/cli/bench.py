@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_OK, InputError
-from .options import add_command, int_at_least, length, load_tracker_config, non_negative_float
+from .options import add_command, add_marker_length, int_at_least, load_tracker_config, non_negative_float
 
 
 def _clip_list(text: str) -> tuple[str, ...]:
@@ -95,13 +95,7 @@ def _add_real_options(bench: argparse.ArgumentParser) -> None:
         "--camera", type=Path, default=None, help="real: its calibration (default: camera.yml or intrinsics.yml by it)"
     )
     bench.add_argument("--dictionary", default=None, help="real: override [detector] dictionary")
-    bench.add_argument(
-        "--marker-length",
-        type=length("m"),
-        default=None,
-        metavar="LENGTH",
-        help="real: override [markers] length_m, e.g. 50mm (a bare number is metres)",
-    )
+    add_marker_length(bench, "real: override [markers] length_m, e.g. 50mm (a bare number is metres)")
     bench.add_argument(
         "--layout", type=Path, default=None, help="real: printed marker map (ArUco YAML or TOML): also score vs. it"
     )

@@ -244,6 +244,13 @@ def add_camera_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_marker_length(parser: argparse.ArgumentParser, help: str, *, required: bool = False) -> None:
+    """``--marker-length LENGTH``: a marker's side as every command spells it (a bare number is metres)."""
+    parser.add_argument(
+        "--marker-length", type=length("m"), default=None, required=required, metavar="LENGTH", help=help
+    )
+
+
 def add_tracker_options(parser: argparse.ArgumentParser) -> None:
     """--config, --dictionary, --marker-length and --no-filter: the tracker config and its overrides."""
     parser.add_argument(
@@ -258,12 +265,8 @@ def add_tracker_options(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="override [detector] dictionary, e.g. DICT_ARUCO_ORIGINAL, 4x4_50 or tag36h11",
     )
-    parser.add_argument(
-        "--marker-length",
-        type=length("m"),
-        default=None,
-        metavar="LENGTH",
-        help="override [markers] length_m: marker side, e.g. 50mm, 5cm or 0.05 (a bare number is metres)",
+    add_marker_length(
+        parser, "override [markers] length_m: marker side, e.g. 50mm, 5cm or 0.05 (a bare number is metres)"
     )
     parser.add_argument(
         "--no-filter",

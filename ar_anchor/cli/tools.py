@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
-from .options import SameLength, add_command, int_at_least, length, positive_float
+from .options import SameLength, add_command, add_marker_length, int_at_least, length, positive_float
 
 
 def add_parsers(commands: Any) -> None:
@@ -187,13 +187,7 @@ def add_map_parser(commands: Any) -> None:
     mapper.add_argument("sources", nargs="+", metavar="VIDEO", help="video file, image folder or quoted glob")
     mapper.add_argument("--camera", type=Path, required=True, help="camera YAML of the camera that filmed VIDEO")
     mapper.add_argument("--dictionary", required=True, help="cv2.aruco dictionary of the markers, e.g. DICT_4X4_50")
-    mapper.add_argument(
-        "--marker-length",
-        type=length("m"),
-        required=True,
-        metavar="LENGTH",
-        help="side of each marker's black square, e.g. 50mm (a bare number is metres)",
-    )
+    add_marker_length(mapper, "side of each marker's black square, e.g. 50mm (a bare number is metres)", required=True)
     mapper.add_argument("--out", type=Path, required=True, help="layout file to write: layout.yml or layout.toml")
     mapper.add_argument("--origin", type=int_at_least(0), default=None, help="marker id of the map frame")
     mapper.add_argument("--step", type=int_at_least(1), default=1, help="search one frame in N (default 1: all)")
