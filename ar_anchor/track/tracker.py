@@ -36,7 +36,14 @@ from .filtering import (
     unit_covariances_of,
 )
 from .fit import refit
-from .groups import GROUP_PREFIX, GroupLayout, GroupLearner, disagrees_with_layout, doubt_layouts, members_from_groups
+from .groups import (
+    GroupLayout,
+    GroupLearner,
+    disagrees_with_layout,
+    doubt_layouts,
+    is_learned_group,
+    members_from_groups,
+)
 from .marker_poses import solve_markers
 from .pose import BoardPose, BoardSolver, MarkerPose, PoseFailure, PoseHypothesis, reprojection_rms
 
@@ -531,8 +538,8 @@ class Tracker:
         return {
             name
             for name, solved in measured.items()
-            if isinstance(solved, BoardPose) and name not in configured and name.is_board
-            and name.name.startswith(GROUP_PREFIX) and disagrees_with_layout(solved)
+            if isinstance(solved, BoardPose) and name not in configured and is_learned_group(name)
+            and disagrees_with_layout(solved)
         }  # fmt: skip
 
     def _at_first_row(self, detections: MarkerDetections, frame: Frame) -> MarkerDetections:
