@@ -17,7 +17,7 @@ from ..geometry import Pose, angle_between_deg, mean_rotation
 from ..targets import TargetId, TrackState
 from .filtering import TrackEvent, so3_exp, so3_log
 from .pose import BoardPose, MarkerPose, reprojection_rms
-from .tracker import FrameResult, TargetResult
+from .results import FrameResult, TargetResult
 
 if TYPE_CHECKING:
     from .offline import OfflinePlan, _Decided

@@ -3,7 +3,7 @@
 ``live`` must decide each frame from the frames before it; a replay has the recording. Here the same
 flip filter that ran forwards (the causal pass, :class:`~ar_anchor.track.tracker.Tracker`) runs again
 **backwards** over the same per-frame solutions (both IPPE solutions of every target, kept in
-:attr:`FrameResult.measurements <ar_anchor.track.tracker.FrameResult.measurements>`), and each frame
+:attr:`FrameResult.measurements <ar_anchor.track.results.FrameResult.measurements>`), and each frame
 takes what the two passes say together:
 
 - **The planar flip** (which of the frame's solutions): the evidence of the frames before it (the
@@ -48,8 +48,9 @@ from .filtering.track import EVIDENCE_DOUBTS, SEGMENT_STARTS
 from .fit import refit
 from .gaps import Bridge
 from .groups import LAYOUT_DOUBT, doubt_layouts, members_from_groups
+from .results import FrameResult, TargetResult, as_member
 from .spool import FrameStore, SpoolStore
-from .tracker import FrameResult, TargetResult, as_member, update_tracks
+from .tracks import update_tracks
 
 __all__ = ["FrameStore", "OfflinePlan", "SpoolStore", "decide", "offline_results", "smooth"]
 
