@@ -114,7 +114,7 @@ class DetectedFrame:
     frame: Frame
     camera: CameraModel  # the calibration at the frame's size
     detections: MarkerDetections
-    blurred: bool  # motion-blurred (see Tracker._blurred)
+    blurred: bool  # motion-blurred (see MarkerSearch._blurred, search.py)
     detail: float  # the fine-scale contrast (FrameResult.detail)
     repeated: bool  # the last new frame's pixels and markers again: its answer stands
     detect_ms: float
