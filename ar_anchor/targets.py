@@ -1,7 +1,7 @@
 """Who a pose is about, and what the tracker says of it: :class:`TargetId` and :class:`TrackState`.
 
 A target is a single marker (``marker:<id>``) or a rigid board (``board:<name>``). Its name is the
-key of :attr:`FrameResult.targets <ar_anchor.track.tracker.FrameResult.targets>`, the ``target``
+key of :attr:`FrameResult.targets <ar_anchor.track.results.FrameResult.targets>`, the ``target``
 column of ``poses.csv`` and the entity path in rerun, so it is a string; :class:`TargetId` is that
 string with its parts and one ordering attached, and the only place a name is built or parsed.
 Patterns (``marker:*``, ``board:*``, ``*``) select targets for overlays.

@@ -47,7 +47,7 @@ def run_overlay_benchmark(frames: int = 60, progress: Callable[[int, int, str], 
     from ..config import OverlayConfig  # noqa: PLC0415
     from ..render.overlay import OverlayRenderer  # noqa: PLC0415
     from ..track.detection import MarkerDetections  # noqa: PLC0415
-    from ..track.tracker import FrameResult, TargetResult  # noqa: PLC0415
+    from ..track.results import FrameResult, TargetResult  # noqa: PLC0415
 
     rows = []
     sizes = [(1280, 720, 1000.0), (1920, 1080, 1480.0)]

@@ -41,7 +41,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import OverlayConfig, TrackerConfig, dictionary_size
 from ..targets import TargetId, TrackState
-from ..track.tracker import FrameResult, TargetResult
+from ..track.results import FrameResult, TargetResult
 from .models import Model, cube_model, load_mesh
 
 __all__ = ["Overlay", "OverlayRenderer", "target_from_anchor", "STATE_STYLE", "unmatched_target_problem"]

@@ -29,7 +29,7 @@ import numpy as np
 from ..config import TrackerConfig
 from ..sources.base import Frame
 from ..track.dictionary_probe import DictionaryGuess, probe_dictionaries
-from ..track.tracker import FrameResult
+from ..track.results import FrameResult
 
 __all__ = ["FAR_M", "PROBE_BUDGET_S", "WINDOW_FRAMES", "WINDOW_S", "RunHints", "dictionary_hint_text"]
 

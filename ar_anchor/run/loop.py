@@ -40,8 +40,9 @@ from ..sources.base import Frame, FrameSource, SourceInfo
 from ..sources.files import IMAGE_EXTENSIONS
 from ..track.ahead import detected_ahead
 from ..track.offline import decide, offline_results
+from ..track.results import DetectedFrame, FrameResult
 from ..track.spool import SpoolStore
-from ..track.tracker import DetectedFrame, FrameResult, Tracker
+from ..track.tracker import Tracker
 from .hints import RunHints
 from .interrupts import InterruptGuard
 from .options import RunOptions

@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import InputError, OutputError, printable
 from ..geometry import Pose, pose_errors
 from ..targets import TargetId, TrackState
-from ..track.tracker import FrameResult
+from ..track.results import FrameResult
 
 __all__ = [
     "POSES_CSV_HEADER",

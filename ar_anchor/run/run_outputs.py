@@ -44,7 +44,7 @@ from ..geometry import Pose
 from ..render.overlay import OverlayRenderer
 from ..render.video import AnnotatedVideoWriter
 from ..sources.base import Frame, SourceInfo
-from ..track.tracker import FrameResult
+from ..track.results import FrameResult
 from .options import RunOptions
 from .outputs import DiskFullError, PosesCsvWriter, RawVideoWriter, RunSummary, SummaryFile, is_disk_full
 from .paths import OutDirLock

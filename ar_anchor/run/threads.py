@@ -31,7 +31,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from ..sources.base import Frame
-from ..track.tracker import FrameResult
+from ..track.results import FrameResult
 
 __all__ = ["OutputStage", "Prefetcher"]
 

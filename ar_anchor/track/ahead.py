@@ -16,7 +16,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 from ..sources.base import Frame
-from .tracker import DetectedFrame, Tracker
+from .results import DetectedFrame
+from .tracker import Tracker
 
 __all__ = ["detected_ahead"]
 

@@ -157,26 +157,9 @@ def fit_corners_by_edges(
             line_centre, direction[near], _, squares = _principal_lines(points[near], inliers[near])
             centre[near] = np.where(np.isfinite(centre[near]), line_centre, np.nan)
             rms[near] = np.sqrt(squares / np.maximum(count[near], 1))
-    # a side is trusted when its line rests on many edge points spread along it, close to it, runs along
-    # the detected side, and its edge is about as strong as the marker's other sides' (a side with no edge
-    # at all has only noise: weak and scattered)
-    after, before = (np.arange(sides) + 1) % sides, (np.arange(sides) - 1) % sides
-    detected = plane_quad[:, after] - plane_quad
-    turn = np.abs(np.einsum("mkd,mkd->mk", detected, direction)) / np.maximum(np.linalg.norm(detected, axis=2), 1e-12)
-    valid = profiles.valid.sum(axis=-1)
-    noise = np.min(np.where(count >= _MIN_POINTS, rms, np.inf), axis=1)
-    rms_limit = np.maximum(np.maximum(_MAX_RMS_PX, _MAX_RMS_HALF * profiles.half), _MAX_RMS_NOISE * noise)
-    trusted = (
-        (count >= np.maximum(_MIN_POINTS, _MIN_POINT_FRACTION * valid))
-        & (count >= _MIN_INLIER_FRACTION * keep.sum(axis=-1))
-        & (extent >= _MIN_COVERAGE * (valid - 1))
-        & (rms <= rms_limit[:, None])
-        & (turn >= np.cos(np.radians(_MAX_TURN_DEG)))
-    )
-    with np.errstate(invalid="ignore"):
-        strongest = np.max(np.where(trusted, strength, 0.0), axis=1)
-        trusted &= strength >= _MIN_STRENGTH * strongest[:, None]
+    trusted = _trusted_sides(profiles, plane_quad, direction, count, rms, extent, keep, strength)
     # corner k is where sides k - 1 and k meet
+    before = (np.arange(sides) - 1) % sides
     centre_before, direction_before = centre[:, before], direction[:, before]
     refined = _intersect(centre_before, direction_before, centre, direction)
     sin = np.abs(direction_before[..., 0] * direction[..., 1] - direction_before[..., 1] * direction[..., 0])
@@ -193,6 +176,41 @@ def fit_corners_by_edges(
     out[profiles.index] = np.where(good[..., None], refined, quad)
     status[profiles.index] = np.where(good, FITTED, REJECTED)
     return out, status
+
+
+def _trusted_sides(
+    profiles: _Profiles,
+    plane_quad: np.ndarray,
+    direction: np.ndarray,
+    count: np.ndarray,
+    rms: np.ndarray,
+    extent: np.ndarray,
+    keep: np.ndarray,
+    strength: np.ndarray,
+) -> np.ndarray:
+    """(M, K) bool: which sides' fitted lines (``direction``, from ``count`` inlier edge points ``rms`` from the
+    line and spread over ``extent`` samples, of the points ``keep`` marks, with edge ``strength``) are trusted. A
+    side is trusted when its line rests on many edge points spread along it, close to it, runs along the detected
+    side (of ``plane_quad``, where the lines were fitted), and its edge is about as strong as the marker's other
+    sides' (a side with no edge at all has only noise: weak and scattered)."""
+    sides = plane_quad.shape[1]
+    after = (np.arange(sides) + 1) % sides
+    detected = plane_quad[:, after] - plane_quad
+    turn = np.abs(np.einsum("mkd,mkd->mk", detected, direction)) / np.maximum(np.linalg.norm(detected, axis=2), 1e-12)
+    valid = profiles.valid.sum(axis=-1)
+    noise = np.min(np.where(count >= _MIN_POINTS, rms, np.inf), axis=1)
+    rms_limit = np.maximum(np.maximum(_MAX_RMS_PX, _MAX_RMS_HALF * profiles.half), _MAX_RMS_NOISE * noise)
+    trusted = (
+        (count >= np.maximum(_MIN_POINTS, _MIN_POINT_FRACTION * valid))
+        & (count >= _MIN_INLIER_FRACTION * keep.sum(axis=-1))
+        & (extent >= _MIN_COVERAGE * (valid - 1))
+        & (rms <= rms_limit[:, None])
+        & (turn >= np.cos(np.radians(_MAX_TURN_DEG)))
+    )
+    with np.errstate(invalid="ignore"):
+        strongest = np.max(np.where(trusted, strength, 0.0), axis=1)
+        trusted &= strength >= _MIN_STRENGTH * strongest[:, None]
+    return trusted
 
 
 class _Profiles:

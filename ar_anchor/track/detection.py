@@ -113,7 +113,7 @@ def plan_regions(
 # it finds exactly the markers the three-window search finds in every frame, in a sixth of the time; it finds
 # no marker of 32 px and every one of 40 px and more (synthetic 4x4 markers, blurred and noisy, 640-1920 px wide).
 # It is used only while every marker known is at least FAST_MIN_SIDE_PX (a margin for a marker seen smaller
-# in the next frame); see Tracker._detect.
+# in the next frame); see MarkerSearch._detect (search.py).
 _FAST_CANONICAL_SIDE_PX = 32
 FAST_MIN_SIDE_PX = 40.0
 

@@ -28,7 +28,7 @@ from .filtering import TrackEvent, decided_alone, so3_exp, so3_log
 from .pose import BoardPose, MarkerPose, reprojection_rms
 
 if TYPE_CHECKING:
-    from .tracker import TargetResult
+    from .results import TargetResult
 
 __all__ = ["fit_bound_px", "misfit_px", "refit"]
 

@@ -9,18 +9,15 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator, Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..geometry import Pose, angle_between_deg, mean_rotation
 from ..targets import TargetId, TrackState
 from .filtering import TrackEvent, so3_exp, so3_log
+from .plan import FrameDecision, OfflinePlan
 from .pose import BoardPose, MarkerPose, reprojection_rms
-from .tracker import FrameResult, TargetResult
-
-if TYPE_CHECKING:
-    from .offline import OfflinePlan, _Decided
+from .results import FrameResult, TargetResult
 
 __all__ = ["Bridge"]
 
@@ -59,7 +56,7 @@ class Bridge:
         # motion through it is steady enough to interpolate in time
         self.following: dict[TargetId, tuple[int | None, bool]] = {}
 
-    def measured(self, position: int, causal: FrameResult, decided: _Decided, k: int) -> TargetResult:
+    def measured(self, position: int, causal: FrameResult, decided: FrameDecision, k: int) -> TargetResult:
         """The ``k``-th measured target of frame ``position``: the causal result (its description, corners,
         hypotheses) with the plan's state and pose; remembered as the start of a possible gap."""
         name = decided.names[k]

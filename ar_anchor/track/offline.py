@@ -3,7 +3,7 @@
 ``live`` must decide each frame from the frames before it; a replay has the recording. Here the same
 flip filter that ran forwards (the causal pass, :class:`~ar_anchor.track.tracker.Tracker`) runs again
 **backwards** over the same per-frame solutions (both IPPE solutions of every target, kept in
-:attr:`FrameResult.measurements <ar_anchor.track.tracker.FrameResult.measurements>`), and each frame
+:attr:`FrameResult.measurements <ar_anchor.track.results.FrameResult.measurements>`), and each frame
 takes what the two passes say together:
 
 - **The planar flip** (which of the frame's solutions): the evidence of the frames before it (the
@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -48,45 +47,14 @@ from .filtering.track import EVIDENCE_DOUBTS, SEGMENT_STARTS
 from .fit import refit
 from .gaps import Bridge
 from .groups import LAYOUT_DOUBT, doubt_layouts, members_from_groups
+from .plan import FrameDecision, OfflinePlan
+from .results import FrameResult, TargetResult, as_member
 from .spool import FrameStore, SpoolStore
-from .tracker import FrameResult, TargetResult, as_member, update_tracks
+from .tracks import update_tracks
 
 __all__ = ["FrameStore", "OfflinePlan", "SpoolStore", "decide", "offline_results", "smooth"]
 
 Progress = Callable[[int, int], Any]  # (done, total)
-
-
-@dataclass(frozen=True)
-class _Decided:
-    """The offline answer for the measured targets of one frame (a few numbers each: the plan of a long
-    recording stays small)."""
-
-    names: tuple[TargetId, ...]
-    states: tuple[TrackState, ...]
-    poses: np.ndarray  # (K, 6): rvec, tvec
-    choices: tuple[int, ...]  # index of the chosen solution in the frame's measurement
-    causal_choices: tuple[int, ...]  # the forward (live) pass's, -1 where it published nothing
-    segment_starts: tuple[bool, ...]  # the forward pass started a new track segment here (a cut, a jump, a refit)
-
-    def pose(self, k: int) -> Pose:
-        return Pose(self.poses[k, :3], self.poses[k, 3:])
-
-
-@dataclass
-class OfflinePlan:
-    """What :func:`decide` found: per frame position, the measured targets' offline answers (None for a
-    repeated frame), and every frame's timestamp."""
-
-    config: FilterConfig
-    timestamps_ns: np.ndarray
-    decided: list[_Decided | None]
-    blurred: np.ndarray  # (frames,) bool: motion-blurred frames (no gap is bridged across one)
-    detail: np.ndarray  # (frames,) each frame's fine-scale contrast (FrameResult.detail)
-    measured: np.ndarray  # (frames,) how many targets each frame measured
-    fit_margin_px: float = PoseConfig().fit_margin_px  # [pose] fit_margin_px: every output fits its frame
-
-    def __len__(self) -> int:
-        return len(self.decided)
 
 
 def decide(
@@ -102,7 +70,7 @@ def decide(
     blurred = np.zeros(count, bool)
     detail = np.full(count, np.nan)
     measured = np.zeros(count, np.int32)
-    decided: list[_Decided | None] = [None] * count
+    decided: list[FrameDecision | None] = [None] * count
     tracks: dict[TargetId, TargetTrack] = {}
     end_ns: int | None = None
     for done, position in enumerate(reversed(range(count)), start=1):
@@ -157,7 +125,7 @@ def _mean_pose(weighted: Sequence[tuple[Pose, int]]) -> Pose:
     return Pose.from_matrix(rotation, a.tvec + share * (b.tvec - a.tvec))
 
 
-def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate], config: FilterConfig) -> _Decided:
+def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate], config: FilterConfig) -> FrameDecision:
     """The flip and the pose of every target measured in ``result``, from the forward pass (``result``'s
     own targets) and the backward pass's ``backward`` updates (see the module doc)."""
     names, states, poses, choices, causal, starts = [], [], [], [], [], []
@@ -195,7 +163,7 @@ def _decide_frame(result: FrameResult, backward: dict[TargetId, TrackUpdate], co
         choices.append(choice)
         causal.append(f_choice)
     array = np.array(poses, np.float64).reshape(-1, 6)
-    return _Decided(tuple(names), tuple(states), array, tuple(choices), tuple(causal), tuple(starts))
+    return FrameDecision(tuple(names), tuple(states), array, tuple(choices), tuple(causal), tuple(starts))
 
 
 def _doubts(p: TargetResult | TrackUpdate, choice: int, alone: bool) -> set[str]:

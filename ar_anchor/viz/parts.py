@@ -9,7 +9,7 @@ import rerun as rr
 
 from ..geometry import marker_corners_in_marker
 from ..targets import TargetId
-from ..track.tracker import TargetResult
+from ..track.results import TargetResult
 
 __all__ = ["closed_squares", "entity_name", "mesh3d"]
 

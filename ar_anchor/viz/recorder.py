@@ -79,7 +79,7 @@ from ..config import RecordingConfig
 from ..geometry import Pose, angle_between_deg
 from ..sources.base import Frame
 from ..targets import TargetId, TrackState
-from ..track.tracker import FrameResult, TargetResult
+from ..track.results import FrameResult, TargetResult
 from .blueprints import Framing, run_blueprint
 from .parts import closed_squares, entity_name, mesh3d
 from .pinhole import _distortion_note, image_from_camera
