@@ -102,13 +102,12 @@ def _finite(value: Any) -> float | None:
 
 def _is_learned_group(name: str) -> bool:
     """Is the target ``name`` (a key of ``summary.json``'s ``targets``) a learned group's board?"""
-    from ..track.groups import GROUP_PREFIX
+    from ..track.groups import is_learned_group
 
     try:
-        target = TargetId.parse(name)
+        return is_learned_group(TargetId.parse(name))
     except ValueError:
         return False
-    return target.kind == "board" and target.name.startswith(GROUP_PREFIX)
 
 
 def fill_row(row: dict[str, Any], out_dir: Path, *, rigid_sheet: bool) -> None:
