@@ -54,9 +54,16 @@ class Tracker:
 
     Example
     -------
-    >>> tracker = Tracker(load_config(), CameraModel.from_yaml("configs/camera_synthetic.yml"))
-    >>> result = tracker.process(frame)        # doctest: +SKIP
-    >>> result.targets[TargetId.marker(0)].pose.tvec   # doctest: +SKIP
+    >>> from ar_anchor import SyntheticSource, demo_scene
+    >>> from ar_anchor.config import demo_config
+    >>> config, camera = demo_config(), CameraModel.default_synthetic()
+    >>> tracker = Tracker(config, camera)
+    >>> for frame in SyntheticSource(demo_scene(config, camera, frames=1)):
+    ...     result = tracker.process(frame)
+    >>> list(result.targets)[:3]
+    ['board:desk', 'marker:0', 'marker:7']
+    >>> result.targets[TargetId.marker(0)].state
+    <TrackState.TRACKED: 'tracked'>
     """
 
     def __init__(self, config: TrackerConfig, camera: CameraModel, *, stills: bool = False) -> None:
