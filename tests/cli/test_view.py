@@ -315,7 +315,8 @@ def test_serve_streams_the_run_and_keeps_serving_until_ctrl_c(tmp_path):
 
 @pytest.mark.slow
 def test_a_run_interrupted_while_serving_takes_the_viewer_with_it(tmp_path):
-    argv = ["-q", "live", "--device", "synthetic", "--serve", "--serve-port", "0", "--out", str(tmp_path / "run")]
+    argv = ["-q", "live", "--device", "synthetic", "--width", "320", "--height", "180", "--serve", "--serve-port", "0"]
+    argv += ["--out", str(tmp_path / "run")]
     process = subprocess.Popen(cli(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         _read_url(process)
@@ -403,9 +404,9 @@ def test_the_screenshot_check_refuses_blank_and_loading_pages():
 @pytest.mark.skipif(find_chromium() is None, reason="chromium not installed (apt-get install chromium; .ci/run does)")
 def test_the_web_viewer_shows_the_overlay_in_the_camera_view(tmp_path):
     started = time.monotonic()
-    # given a short demo run (a still camera near the markers: the overlay is large)
+    # given a short demo run (a still camera near the markers: the overlay is large; every frame shows it)
     out = tmp_path / "run"
-    argv = ["-q", "demo", "--frames", "30", "--trajectory", "static", "--out", str(out)]
+    argv = ["-q", "demo", "--frames", "10", "--trajectory", "static", "--out", str(out)]
     subprocess.run(cli(argv), check=True, capture_output=True, timeout=300)
     # when its recording is served and opened in headless Chromium
     process = subprocess.Popen(
@@ -423,7 +424,7 @@ def test_the_web_viewer_shows_the_overlay_in_the_camera_view(tmp_path):
         deadline = time.monotonic() + BROWSER_TIMEOUT_S
         shots = 0
         while time.monotonic() < deadline:
-            time.sleep(2.0)
+            time.sleep(1.0)
             shot = browser.screenshot()
             shots += 1
             cv2.imwrite(str(tmp_path / "web_viewer.png"), shot)
@@ -541,8 +542,8 @@ def _demo_frames(tmp_path: Path, indices: list[int]) -> dict[int, np.ndarray]:
     config = load_config(tmp_path / "parts.toml", demo=True)
     trajectory = Trajectory(kind="sweep", near_m=0.35, far_m=3.0, look_at=(-0.01, 0.0, 0.0))
     scene = demo_scene(config, CameraModel.default_synthetic(), frames=60, seed=0, trajectory=trajectory)
-    with SyntheticSource(scene) as source:
-        return {frame.index: frame.image for frame in source if frame.index in indices}
+    with SyntheticSource(scene) as source:  # each frame rendered alone is the one the run rendered in turn
+        return {index: source.frame(index).image for index in indices}
 
 
 def _best_match(region: np.ndarray, frames: dict[int, np.ndarray]) -> tuple[int, dict[int, float]]:
