@@ -50,6 +50,7 @@ The cost: a 150-frame 640x480 hand-held clip with blur, rolling shutter and H.26
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from fractions import Fraction
@@ -126,6 +127,15 @@ def _paper_quad(world_from_plane: Pose, x0: float, y0: float, x1: float, y1: flo
     sx, sy = (x1 - x0) / n, (y1 - y0) / n
     plane_from_texture = np.array([[sx, 0.0, x0 + 0.5 * sx], [0.0, sy, y0 + 0.5 * sy], [0.0, 0.0, 1.0]])
     return _Quad(world_from_plane, texture, plane_from_texture)
+
+
+@functools.lru_cache(maxsize=8)
+def _wall_texture(seed: int) -> np.ndarray:
+    """The cluttered wall of a scene of ``seed`` (read-only; 3 MB): drawn once per seed in a process, not once per
+    renderer (0.1 s each, and a process that renders many short scenes builds a renderer for each)."""
+    texture = _clutter_texture(np.random.default_rng([seed, 0xC1077E7]))
+    texture.flags.writeable = False
+    return texture
 
 
 def _clutter_texture(rng: np.random.Generator, size: int = 1024) -> np.ndarray:
@@ -206,8 +216,8 @@ class _QuadRenderer:
     def __init__(self, scene: SyntheticScene) -> None:
         self.scene = scene
         self.camera, self._undistort_maps = pinhole_canvas(scene.camera)
-        rng = np.random.default_rng([scene.seed, 0xC1077E7])
-        self.wall_texture = _clutter_texture(rng) if scene.clutter else np.full((8, 8, 3), 128, np.uint8)
+        # (a copy: sheets flat on the wall are painted into it below)
+        self.wall_texture = _wall_texture(scene.seed).copy() if scene.clutter else np.full((8, 8, 3), 128, np.uint8)
         wall_m = 2.0
         ts = wall_m / self.wall_texture.shape[1]
         self.wall_from_texture = np.array(
