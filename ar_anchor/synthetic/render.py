@@ -396,17 +396,25 @@ class Renderer:
         """Optical blur, sensor noise, rounding. ``fast_noise``: OpenCV's generator seeded from ``rng``
         (3x faster than numpy's Gaussian at 640x480; the hand-held path uses it, the calm path keeps
         numpy's so its frames stay as they were)."""
+        owned = False  # whether ``canvas`` is an array of this call's own, to work in place (the same values)
         if self.scene.blur_sigma > 0:
-            canvas = cv2.GaussianBlur(canvas, (0, 0), self.scene.blur_sigma)
+            canvas, owned = cv2.GaussianBlur(canvas, (0, 0), self.scene.blur_sigma), True
         if self.scene.noise_sigma > 0 and rng is not None:
             if fast_noise:
                 noise = np.empty(canvas.shape, np.float32)
                 cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
                 cv2.randn(noise, (0.0,) * 3, (self.scene.noise_sigma,) * 3)
-                canvas = canvas + noise
             else:
-                noise = rng.standard_normal(canvas.shape, dtype=np.float32) * np.float32(self.scene.noise_sigma)
+                noise = rng.standard_normal(canvas.shape, dtype=np.float32)
+                noise *= np.float32(self.scene.noise_sigma)
+            if canvas.dtype == np.float32:
+                noise += canvas
+                canvas, owned = noise, True
+            else:
                 canvas = canvas + noise
+        if owned and canvas.dtype == np.float32:
+            canvas += np.float32(0.5)
+            return np.clip(canvas, 0, 255, out=canvas).astype(np.uint8)
         return np.clip(canvas + 0.5, 0, 255).astype(np.uint8)
 
     def _target_points(self) -> np.ndarray:
