@@ -567,9 +567,10 @@ def test_a_screenshot_of_a_split_recording_draws_exactly_the_frame_asked_for(tmp
     subprocess.run(cli(argv), check=True, capture_output=True, timeout=300, cwd=tmp_path)
     parts = json.loads((tmp_path / "run" / "summary.json").read_text())["recording_parts"]
     assert len(parts) >= 3, parts
-    # when the run's folder is screenshot at frame 45 in the camera layout
+    # when the run's folder is screenshot at frame 45 in the camera layout (in a smaller window than the default
+    # 1600x900: headless Chromium draws the viewer on the CPU, and the image is still 850 pixels wide)
     shot_png = tmp_path / "shot.png"
-    argv = ["view", "run", "--screenshot", str(shot_png), "--frame", "45", "--layout", "camera"]
+    argv = ["view", "run", "--screenshot", str(shot_png), "--frame", "45", "--layout", "camera", "--size", "1024x576"]
     result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert result.returncode == 0, describe(result)
     assert f"{len(parts)} file(s)" in result.stderr and "frame 45 of 0..59" in result.stdout, describe(result)
@@ -600,6 +601,7 @@ def test_a_frame_outside_the_recording_is_one_line_and_exit_2(tmp_path):
     stream.disconnect()
     # when frame 99 is asked for
     argv = ["view", str(tmp_path / "recording.rrd"), "--screenshot", str(tmp_path / "shot.png"), "--frame", "99"]
+    argv += ["--size", "800x450"]  # (no picture is taken: the window's size does not matter)
     result = subprocess.run(cli(argv), capture_output=True, text=True, timeout=600)
     # then the command says which frames there are, and writes nothing
     assert result.returncode == EXIT_USAGE, describe(result)
