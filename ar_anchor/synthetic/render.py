@@ -50,6 +50,7 @@ The cost: a 150-frame 640x480 hand-held clip with blur, rolling shutter and H.26
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from fractions import Fraction
@@ -126,6 +127,15 @@ def _paper_quad(world_from_plane: Pose, x0: float, y0: float, x1: float, y1: flo
     sx, sy = (x1 - x0) / n, (y1 - y0) / n
     plane_from_texture = np.array([[sx, 0.0, x0 + 0.5 * sx], [0.0, sy, y0 + 0.5 * sy], [0.0, 0.0, 1.0]])
     return _Quad(world_from_plane, texture, plane_from_texture)
+
+
+@functools.lru_cache(maxsize=8)
+def _wall_texture(seed: int) -> np.ndarray:
+    """The cluttered wall of a scene of ``seed`` (read-only; 3 MB): drawn once per seed in a process, not once per
+    renderer (0.1 s each, and a process that renders many short scenes builds a renderer for each)."""
+    texture = _clutter_texture(np.random.default_rng([seed, 0xC1077E7]))
+    texture.flags.writeable = False
+    return texture
 
 
 def _clutter_texture(rng: np.random.Generator, size: int = 1024) -> np.ndarray:
@@ -206,8 +216,8 @@ class _QuadRenderer:
     def __init__(self, scene: SyntheticScene) -> None:
         self.scene = scene
         self.camera, self._undistort_maps = pinhole_canvas(scene.camera)
-        rng = np.random.default_rng([scene.seed, 0xC1077E7])
-        self.wall_texture = _clutter_texture(rng) if scene.clutter else np.full((8, 8, 3), 128, np.uint8)
+        # (a copy: sheets flat on the wall are painted into it below)
+        self.wall_texture = _wall_texture(scene.seed).copy() if scene.clutter else np.full((8, 8, 3), 128, np.uint8)
         wall_m = 2.0
         ts = wall_m / self.wall_texture.shape[1]
         self.wall_from_texture = np.array(
@@ -386,17 +396,25 @@ class Renderer:
         """Optical blur, sensor noise, rounding. ``fast_noise``: OpenCV's generator seeded from ``rng``
         (3x faster than numpy's Gaussian at 640x480; the hand-held path uses it, the calm path keeps
         numpy's so its frames stay as they were)."""
+        owned = False  # whether ``canvas`` is an array of this call's own, to work in place (the same values)
         if self.scene.blur_sigma > 0:
-            canvas = cv2.GaussianBlur(canvas, (0, 0), self.scene.blur_sigma)
+            canvas, owned = cv2.GaussianBlur(canvas, (0, 0), self.scene.blur_sigma), True
         if self.scene.noise_sigma > 0 and rng is not None:
             if fast_noise:
                 noise = np.empty(canvas.shape, np.float32)
                 cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
                 cv2.randn(noise, (0.0,) * 3, (self.scene.noise_sigma,) * 3)
-                canvas = canvas + noise
             else:
-                noise = rng.standard_normal(canvas.shape, dtype=np.float32) * np.float32(self.scene.noise_sigma)
+                noise = rng.standard_normal(canvas.shape, dtype=np.float32)
+                noise *= np.float32(self.scene.noise_sigma)
+            if canvas.dtype == np.float32:
+                noise += canvas
+                canvas, owned = noise, True
+            else:
                 canvas = canvas + noise
+        if owned and canvas.dtype == np.float32:
+            canvas += np.float32(0.5)
+            return np.clip(canvas, 0, 255, out=canvas).astype(np.uint8)
         return np.clip(canvas + 0.5, 0, 255).astype(np.uint8)
 
     def _target_points(self) -> np.ndarray:

@@ -77,6 +77,7 @@ class Recording:
         self._blueprint = blueprint
         self._name = name
         self._writing: Path | None = None  # the file being written (its partial name when partial)
+        self._timed_out: str | None = None  # the error of a flush that timed out (a sink that stopped taking data)
         if path is not None:
             self._writing = self._open(Path(path))
             self.files.append(Path(path))
@@ -146,6 +147,7 @@ class Recording:
         try:
             self.stream.flush(timeout_sec=timeout_s)
         except RuntimeError as err:
+            timed_out = "timed out" in str(err).lower()
             if self.files and _disk_full(self.files[-1]):
                 raise OutputError(
                     f"{self._named(self.files[-1])}: incomplete, the disk is full (no footer; it holds what was "
@@ -154,15 +156,24 @@ class Recording:
             where = [self._named(self.files[-1])] if self.files else []
             if self.viewer_url is not None:
                 where.append(f"the viewer at {self.viewer_url}")
-            raise OutputError(
+            message = (
                 f"{' and '.join(where) or 'recording'}: cannot write the recording ({err}: disk full, or the "
                 "viewer gone?); the file holds the frames logged before"
-            ) from None
+            )
+            if timed_out:
+                self._timed_out = message
+            raise OutputError(message) from None
 
     def close(self, *, keep: bool = True, timeout_s: float = 10.0) -> None:
         """Flush (bounded by ``timeout_s``) and close the sinks. A partial file is renamed into place when
-        ``keep`` and the flush succeeded, removed otherwise; a file written in place stays either way."""
+        ``keep`` and the flush succeeded, removed otherwise; a file written in place stays either way.
+
+        After a flush that timed out (a viewer that accepts and never reads), the sinks are not flushed
+        again: that error is raised at once, and only the closing of the sinks is waited for (at most
+        ``timeout_s``), so that a stalled viewer costs a command one wait at its end, not two."""
         try:
+            if self._timed_out is not None:
+                raise OutputError(self._timed_out)
             self.flush(timeout_s)
         except OutputError:
             keep = False

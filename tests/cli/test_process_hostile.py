@@ -96,7 +96,13 @@ print(sorted({name.split(".")[0] for name in seen}))
 """
 
 
-@pytest.mark.parametrize("command", [["demo", "--frames", "2"], ["live", "--device", "synthetic", "--max-frames", "2"]])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["demo", "--frames", "2"],
+        ["live", "--device", "synthetic", "--width", "320", "--height", "180", "--max-frames", "2"],
+    ],
+)
 def test_a_run_imports_nothing_in_the_main_thread_once_a_signal_is_an_interrupt(command, tmp_path):
     # an import that a Ctrl-C cuts short can end in anything: numpy 2's own lazy submodules (numpy.random) or a
     # class body turned it into "internal error: RuntimeError: Error calling __set_name__" (seen on a busy machine)

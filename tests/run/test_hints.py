@@ -199,6 +199,7 @@ def test_replay_of_chessboard_with_the_default_dictionary_names_aruco_original(r
 def test_replay_with_millimetres_warns_about_units_and_distance(realdata, tmp_path):
     folder = realdata / "aruco_testdata" / "chessboard"
     args = ["replay", str(folder / "chessboard.avi"), "--camera", str(folder / "intrinsics.yml")]
+    args += ["--out", str(tmp_path / "out")]  # (not recordings/ of the working directory: the repository)
     run = run_main([*args, "--dictionary", "DICT_ARUCO_ORIGINAL", "--marker-length", "34", "--max-frames", "5"])
     assert run.code == 0, run.describe()
     assert "--marker-length 34: a marker 34 m wide? did you give millimetres?" in run.stderr

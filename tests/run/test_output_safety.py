@@ -93,7 +93,8 @@ def test_out_over_the_source_folder_keeps_its_raw_video_input(tmp_path, video):
 def test_live_record_with_video_out_on_the_raw_recording_is_refused(tmp_path):
     out = tmp_path / "o"
     result = run_main(
-        ["-q", "live", "--device", "synthetic", "--record", "--out", str(out), "--video-out", str(out / "raw.mkv")]
+        ["-q", "live", "--device", "synthetic", "--width", "320", "--height", "180", "--record", "--out", str(out)]
+        + ["--video-out", str(out / "raw.mkv")]
     )
     _refused(result, "--video-out", "--record", "raw.mkv")
     assert not (out / "raw.mkv").exists()

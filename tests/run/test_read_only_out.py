@@ -54,7 +54,8 @@ def _inputs(tmp_path: Path) -> tuple[Path, Path, dict[str, list[str]]]:
     commands = {
         "demo": ["demo", "--frames", "2", "--out", out],
         "replay": ["replay", str(video), "--camera", str(CAMERA), "--out", out],
-        "live": ["live", "--device", "synthetic", "--max-frames", "2", "--out", out],
+        "live": ["live", "--device", "synthetic", "--width", "320", "--height", "180", "--max-frames", "2",
+                 "--out", out],
         "export --out": ["export", str(ro / "run"), "--out", out],
         "export RUN_DIR": ["export", str(ro / "run")],
         "map": ["map", str(sheet), "--camera", str(camera640), "--dictionary", "DICT_4X4_50", "--marker-length",
@@ -154,7 +155,7 @@ def _guard_os_open(original, folder: Path, refuse):
     [
         "demo",
         "replay",
-        # (slow: the synthetic camera takes ~6 s to open and close before the lock is tried)
+        # (slow: the synthetic camera renders its clip when it opens, before the lock is tried)
         pytest.param("live", marks=pytest.mark.slow),
         "export --out",
         "export RUN_DIR",

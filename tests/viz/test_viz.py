@@ -83,6 +83,32 @@ def test_a_file_that_cannot_be_written_is_an_output_error_naming_the_option(tmp_
         Recording("test", path=tmp_path)  # a folder
 
 
+def test_after_a_flush_that_timed_out_close_raises_it_without_waiting_on_a_second_flush(tmp_path):
+    # given a recording whose flush timed out (a viewer that accepts and never reads)
+    recording = Recording("test", path=tmp_path / "x.rrd")
+    flushes, disconnects = [], []
+
+    class Stalled:
+        def flush(self, timeout_sec: float) -> None:
+            flushes.append(timeout_sec)
+            raise RuntimeError("Flush timed out - not all log messages were sent")
+
+        def disconnect(self) -> None:
+            disconnects.append(True)
+
+    real, recording.stream = recording.stream, Stalled()
+    try:
+        with pytest.raises(OutputError, match="Flush timed out") as first:
+            recording.flush(timeout_s=10.0)
+        # when it closes, then it says the same, flushing no more and closing the sinks
+        with pytest.raises(OutputError) as closing:
+            recording.close()
+    finally:
+        real.disconnect()
+    assert str(closing.value) == str(first.value)
+    assert flushes == [10.0] and disconnects == [True]
+
+
 def test_next_file_closes_the_first_complete_and_goes_on_in_the_second(tmp_path):
     first, second = tmp_path / "r.rrd", tmp_path / "r.part2.rrd"
     recording = Recording("test", path=first, blueprint=run_blueprint(), name="r")
