@@ -62,12 +62,13 @@ class Mode:
         rotations = np.concatenate([r for r, _, _ in self.frames])
         translations = np.concatenate([t for _, t, _ in self.frames])
         planar = np.concatenate([p for _, _, p in self.frames])
-        frame_of = np.concatenate([np.full(len(r), k) for k, (r, _, _) in enumerate(self.frames)])
+        counts = np.array([len(r) for r, _, _ in self.frames])  # every frame has a candidate
+        frame_of = np.repeat(np.arange(len(counts)), counts)
         cosines = (np.einsum("nab,mab->nm", rotations, rotations) - 1.0) / 2.0
         near = cosines > math.cos(math.radians(_VOTE_DEG))
-        one_hot = np.zeros((len(rotations), len(self.frames)), bool)
-        one_hot[np.arange(len(rotations)), frame_of] = True
-        support = ((near.astype(np.int32) @ one_hot) > 0).sum(axis=1)
+        # support: the frames with a candidate near each one (a frame's candidates are consecutive columns)
+        starts = np.concatenate(([0], np.cumsum(counts[:-1])))
+        support = np.logical_or.reduceat(near, starts, axis=1).sum(axis=1)
         best = int(np.argmax(support))
         rival = support[cosines[best] < math.cos(math.radians(3 * _VOTE_DEG))]  # rotations clearly elsewhere
         self.decided = support[best] >= _VOTE_SHARE * len(self.frames) and (
