@@ -69,6 +69,21 @@ def _steady_malloc() -> None:
         pass
 
 
+def _one_blas_thread() -> None:
+    """numpy's (and scipy's) OpenBLAS on one thread, unless ``OPENBLAS_NUM_THREADS`` says otherwise.
+
+    The tracker's linear algebra is on 3x3 to 9x9 matrices, which OpenBLAS never splits, yet its pool of
+    one thread per core is started at import and spins after each call, on the cores OpenCV's detector and
+    the run's own threads need. Measured on this 2-core machine (docs/development.md): a 2-frame demo took
+    1.8 s of CPU with the pool and 1.0 s without; the poses are the same to the byte. Only before numpy is
+    imported (the variable is read when its library loads): called by :func:`main`, whose module imports
+    the standard library only; a process that has loaded numpy already keeps its pool."""
+    import os
+
+    if "numpy" not in sys.modules:
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
 def _preload(command: str | None) -> None:
     """Import what ``command`` needs (OpenCV, numpy, rerun, ...) now, while a signal still ends the process
     at once. A module that fails to import is left to the command, which reports it in its own words.
@@ -179,6 +194,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     encoding without the character) is given up quietly, and the run keeps its own exit code."""
     with terminal.Signals() as signals, terminal.guarded_stdout(), terminal.warnings_to_log():
         _steady_malloc()
+        _one_blas_thread()
         terminal.quiet_libraries_early()
         return _run_command(argv, signals)
 

@@ -123,3 +123,35 @@ def test_a_video_replay_loads_pyav_and_rerun_but_no_trimesh(realdata, tmp_path):
     argv += ["--dictionary", "DICT_ARUCO_ORIGINAL", "--marker-length", "0.034", "--causal", "--max-frames", "3"]
     seen = imports_during_main([*argv, "--out", "out"], RUN_HEAVY, cwd=tmp_path)
     assert seen == {"av": "MainThread", "rerun": "open-outputs"}
+
+
+@pytest.mark.parametrize(("given", "expected"), [(None, "1"), ("4", "4")])
+def test_the_command_gives_numpys_blas_one_thread_unless_the_user_chose(given, expected):
+    # given an environment without OPENBLAS_NUM_THREADS, or with the user's own
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    code = (
+        "import os, sys\n"
+        "from ar_anchor.cli.main import main\n"
+        "try:\n"
+        "    main(['--version'])\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "print('BLAS', os.environ.get('OPENBLAS_NUM_THREADS'), 'numpy' in sys.modules)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, check=True)
+    # then numpy, not loaded yet, will start OpenBLAS with one thread (or the user's count)
+    assert f"BLAS {expected} False" in result.stdout, result.stdout + result.stderr
+
+
+def test_a_process_that_loaded_numpy_already_keeps_its_blas():
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    code = (
+        "import os, numpy\n"
+        "from ar_anchor.cli.main import _one_blas_thread\n"
+        "_one_blas_thread()\n"
+        "print('BLAS', os.environ.get('OPENBLAS_NUM_THREADS'))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, check=True)
+    assert "BLAS None" in result.stdout, result.stdout + result.stderr
