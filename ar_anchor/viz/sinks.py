@@ -37,6 +37,9 @@ __all__ = ["Recording"]
 
 log = logging.getLogger(__name__)
 
+#: How long the closing of the sinks is waited for after a flush to a viewer timed out (:meth:`Recording.close`)
+_STALLED_CLOSE_S = 1.0
+
 Colour = tuple[int, int, int] | tuple[int, int, int, int]
 
 
@@ -169,8 +172,10 @@ class Recording:
         ``keep`` and the flush succeeded, removed otherwise; a file written in place stays either way.
 
         After a flush that timed out (a viewer that accepts and never reads), the sinks are not flushed
-        again: that error is raised at once, and only the closing of the sinks is waited for (at most
-        ``timeout_s``), so that a stalled viewer costs a command one wait at its end, not two."""
+        again: that error is raised at once, and a stalled viewer costs a command one wait at its end, not
+        two: with a viewer connected, the closing of the sinks is then given :data:`_STALLED_CLOSE_S` only
+        (it waits on the same viewer, which did not read for a whole flush; the file stays as it is, without
+        its footer, either way); without one (a slow disk) it is given ``timeout_s``."""
         try:
             if self._timed_out is not None:
                 raise OutputError(self._timed_out)
@@ -179,7 +184,8 @@ class Recording:
             keep = False
             raise
         finally:
-            self._disconnect(timeout_s)
+            stalled = self._timed_out is not None and self.viewer_url is not None
+            self._disconnect(min(timeout_s, _STALLED_CLOSE_S) if stalled else timeout_s)
             if self._writing is not None and self.files:
                 self._finish(self._writing, self.files[-1], keep=keep)
 

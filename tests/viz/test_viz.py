@@ -109,6 +109,41 @@ def test_after_a_flush_that_timed_out_close_raises_it_without_waiting_on_a_secon
     assert flushes == [10.0] and disconnects == [True]
 
 
+@pytest.mark.parametrize("viewer", [True, False], ids=["viewer", "file only"])
+def test_after_a_flush_to_a_viewer_timed_out_close_waits_on_the_viewer_briefly(tmp_path, viewer):
+    import threading
+    import time
+
+    # given a recording whose flush times out, and whose sinks never finish closing (a stalled viewer holds them)
+    recording = Recording("test", path=tmp_path / "x.rrd")
+    recording.viewer_url = "rerun+http://127.0.0.1:9/proxy" if viewer else None
+    released = threading.Event()
+
+    class Stalled:
+        def flush(self, timeout_sec: float) -> None:
+            raise RuntimeError("Flush timed out - not all log messages were sent")
+
+        def disconnect(self) -> None:
+            released.wait(30)
+
+    real, recording.stream = recording.stream, Stalled()
+    try:
+        # when it closes (its own flush timing out) with a 2.5-s timeout
+        started = time.monotonic()
+        with pytest.raises(OutputError, match="Flush timed out"):
+            recording.close(timeout_s=2.5)
+        waited = time.monotonic() - started
+    finally:
+        released.set()
+        real.disconnect()
+    # then with a viewer it gives up on the closing after about a second, not a second full timeout; a file
+    # alone (a slow disk, no viewer) gets the whole timeout to close
+    if viewer:
+        assert waited < 2.0, waited
+    else:
+        assert waited >= 2.5, waited
+
+
 def test_next_file_closes_the_first_complete_and_goes_on_in_the_second(tmp_path):
     first, second = tmp_path / "r.rrd", tmp_path / "r.part2.rrd"
     recording = Recording("test", path=first, blueprint=run_blueprint(), name="r")
