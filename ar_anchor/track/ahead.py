@@ -11,8 +11,9 @@ frame's time to every pose).
 
 from __future__ import annotations
 
+import _thread
+import queue
 from collections.abc import Generator, Iterable
-from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 from ..sources.base import Frame
@@ -30,9 +31,22 @@ def detected_ahead(
     """``(frame, extra, tracker.detect(frame))`` for each ``(frame, extra)`` of ``items``, in order, each
     frame's detection started as soon as the frame before it was handed out. An exception in a detection
     is raised here, in order; one of ``items`` after the frame before it; closing the iterator early waits
-    for the detection under way."""
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect") as pool:
-        pending: tuple[Frame, T, Future[DetectedFrame]] | None = None
+    for the detection under way.
+
+    Nothing here takes a lock written in Python: the detecting thread is started with :mod:`_thread` and
+    fed, read and awaited through :class:`queue.SimpleQueue` (both C), so a Ctrl-C, which the run's handler
+    raises in this (the main) thread between any two bytecodes, cannot leave one taken. With a
+    ``ThreadPoolExecutor`` it once did (a ``KeyboardInterrupt`` inside its semaphore's ``with``): the
+    detecting thread then waited on that lock for ever, and the replay, Ctrl-C'd, never ended
+    (``threading.Thread.start`` waits on such a lock too)."""
+    requests: queue.SimpleQueue[Frame | None] = queue.SimpleQueue()
+    answers: queue.SimpleQueue[tuple[bool, object]] = queue.SimpleQueue()
+    finished: queue.SimpleQueue[bool] = queue.SimpleQueue()
+    started = False
+    try:
+        _thread.start_new_thread(_detect_each, (tracker, requests, answers, finished))
+        started = True
+        pending: tuple[Frame, T] | None = None
         frames = iter(items)
         while True:
             try:
@@ -41,11 +55,40 @@ def detected_ahead(
                 break
             except BaseException:  # (the source broke: the frame before is still handed out first)
                 if pending is not None:
-                    yield pending[0], pending[1], pending[2].result()
+                    yield pending[0], pending[1], _answer(answers)
                 raise
-            future = pool.submit(tracker.detect, frame)
+            requests.put(frame)
             if pending is not None:
-                yield pending[0], pending[1], pending[2].result()
-            pending = (frame, extra, future)
+                yield pending[0], pending[1], _answer(answers)
+            pending = (frame, extra)
         if pending is not None:
-            yield pending[0], pending[1], pending[2].result()
+            yield pending[0], pending[1], _answer(answers)
+    finally:
+        requests.put(None)  # the thread ends after the detection under way ...
+        if started:
+            finished.get()  # ... which closing the iterator waits for
+
+
+def _detect_each(
+    tracker: Tracker,
+    requests: queue.SimpleQueue[Frame | None],
+    answers: queue.SimpleQueue[tuple[bool, object]],
+    finished: queue.SimpleQueue[bool],
+) -> None:
+    """The detecting thread: ``(True, detected)`` or ``(False, error)`` for each frame, until ``None``."""
+    try:
+        while (frame := requests.get()) is not None:
+            try:
+                answers.put((True, tracker.detect(frame)))
+            except BaseException as err:  # noqa: BLE001 - raised in the caller's thread, in order
+                answers.put((False, err))
+    finally:
+        finished.put(True)
+
+
+def _answer(answers: queue.SimpleQueue[tuple[bool, object]]) -> DetectedFrame:
+    """The next frame's detection, or its error raised."""
+    ok, value = answers.get()
+    if not ok:
+        raise value  # type: ignore[misc]
+    return value  # type: ignore[return-value]
