@@ -86,6 +86,17 @@ def run_main(argv: Sequence[str]) -> CliResult:
     return CliResult(code, out.getvalue(), err.getvalue(), system_exit)
 
 
+@contextlib.contextmanager
+def working_directory(path: Path):
+    """``path`` as the current directory within the block (``contextlib.chdir`` is Python 3.11+; we support 3.10)."""
+    previous = os.getcwd()
+    os.chdir(path)
+    try:
+        yield
+    finally:
+        os.chdir(previous)
+
+
 def assert_clean_exit(result: CliResult, allowed: set[int] = EXIT_CODES) -> None:
     """An exit code of the documented set, and nothing that betrays a bug on the user's screen."""
     assert isinstance(result.code, int) and result.code in allowed, result.describe()

@@ -39,6 +39,7 @@ from ar_anchor.tools.calibrate import (
     format_report,
     select_views,
 )
+from tests.helpers import run_main, working_directory
 
 RERUN = Path(sys.executable).with_name("rerun")
 TIMEOUT_S = 60
@@ -146,15 +147,8 @@ def board_poses(renderer: BoardRenderer, count: int, seed: int = 1) -> list[tupl
     return poses
 
 
-@pytest.fixture(scope="module")
-def views_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """18 rendered views as PNG files."""
-    folder = tmp_path_factory.mktemp("charuco_views")
-    renderer = BoardRenderer()
-    rng = np.random.default_rng(5)
-    for index, (rotation, tvec) in enumerate(board_poses(renderer, VIEWS)):
-        assert cv2.imwrite(str(folder / f"view_{index:02d}.png"), renderer.render(rotation, tvec, rng))
-    return folder
+# views_dir (the 18 rendered views, read-only) and six_view_report: tests/tools/conftest.py, shared with
+# test_tool_outputs_hostile.py
 
 
 @pytest.fixture(scope="module")
@@ -175,7 +169,8 @@ def copy_views(views_dir: Path, target: Path, count: int) -> Path:
     return target
 
 
-def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+def run_process(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``ar-anchor calibrate ARGS`` as its own process, in ``cwd`` (the end-to-end test)."""
     return subprocess.run(
         [sys.executable, "-m", "ar_anchor", "calibrate", *args],
         cwd=cwd,
@@ -184,6 +179,15 @@ def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
         timeout=TIMEOUT_S,
         check=False,
     )
+
+
+def run_cli(args: list[str], cwd: Path, command: str = "calibrate") -> subprocess.CompletedProcess[str]:
+    """``ar-anchor calibrate ARGS`` run in-process in ``cwd`` (``tests.helpers.run_main``: the same ``main()``, its
+    stdout and stderr captured; stderr is no terminal, as when piped): what it prints, writes and exits with is
+    what these tests check, not the process (test_cli_writes_a_camera_file_and_a_recording runs a real one)."""
+    with working_directory(cwd):
+        result = run_main([command, *args])
+    return subprocess.CompletedProcess([command, *args], result.code, result.stdout, result.stderr)
 
 
 # ======================================================================== round trip
@@ -254,7 +258,7 @@ def test_opencv_tutorial_views_match_opencvs_calibration(realdata):
 @pytest.mark.slow
 def test_cli_writes_a_camera_file_and_a_recording(views_dir, tmp_path):
     folder = copy_views(views_dir, tmp_path / "shots", 10)
-    result = run_cli([str(folder), *BOARD_ARGS, "--out", "calib/camera.yml"], tmp_path)
+    result = run_process([str(folder), *BOARD_ARGS, "--out", "calib/camera.yml"], tmp_path)
     assert result.returncode == 0, result.stderr
     assert "Traceback" not in result.stderr + result.stdout
     out = tmp_path / "calib" / "camera.yml"
@@ -474,10 +478,10 @@ def test_no_board_and_too_few_views_are_input_errors(views_dir, tmp_path):
         CharucoSpec.parse("1x7", 0.04, 0.02, "DICT_6X6_250")
 
 
-def test_unwritable_out_is_an_output_error_and_leaves_nothing(views_dir, tmp_path):
+def test_unwritable_out_is_an_output_error_and_leaves_nothing(six_view_report, tmp_path):
     from ar_anchor.tools.calibrate import write_camera_yaml
 
-    report = calibrate_source(str(copy_views(views_dir, tmp_path / "shots", 6)), spec())
+    report = six_view_report  # calibrate_source of 6 rendered views (tests/tools/conftest.py)
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
     with pytest.raises(OutputError, match="--out"):
@@ -543,15 +547,9 @@ def test_cli_errors_are_one_line_without_traceback(case, code, expected, views_d
 
 
 def _markers(args: list[str], cwd: Path) -> Path:
-    """Run ``ar-anchor markers`` (as a user would) and return the board TOML it wrote beside the sheet."""
-    result = subprocess.run(
-        [sys.executable, "-m", "ar_anchor", "markers", "-q", *args, "--out", "sheet"],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        check=False,
-    )
+    """Run ``ar-anchor markers`` (in-process, as :func:`run_cli`) and return the board TOML it wrote beside the
+    sheet."""
+    result = run_cli(["-q", *args, "--out", "sheet"], cwd, command="markers")
     assert result.returncode == 0, result.stderr
     (toml,) = (cwd / "sheet").glob("*.toml")
     return toml

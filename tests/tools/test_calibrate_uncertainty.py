@@ -118,7 +118,9 @@ def test_the_bootstrap_stops_at_its_time_budget_and_says_so(renderer):
 def test_few_views_and_parallel_views_are_flagged(renderer):
     # given four views (fewer than eight)
     poses = board_poses(renderer, 12, seed=3)
-    few = warped_views(renderer, poses[:8], 3, warp=0.0)[:4]
+    # (the first five poses render the very same first four detected views as the first eight did: view_02
+    # is not detected; the views are rendered in order from one generator, so fewer poses change none of them)
+    few = warped_views(renderer, poses[:5], 3, warp=0.0)[:4]
     assert len(few) == 4
     result = calibrate_views(spec(), few, SIZE, min_views=4)
     uncertainty = bootstrap_uncertainty(spec(), result, SIZE, resamples=30)

@@ -13,7 +13,7 @@ import pytest
 import ar_anchor.tools.calibrate.command as calibrate_command
 from ar_anchor.run.paths import LOCK_NAME
 from tests.helpers import assert_clean_exit, error_lines, run_main
-from tests.tools.test_calibrate import BOARD_ARGS, copy_views, spec, views_dir  # noqa: F401 - fixture
+from tests.tools.test_calibrate import BOARD_ARGS
 
 MARKERS = ["markers", "--dictionary", "DICT_4X4_50", "--ids", "0-1", "--size-mm", "40"]
 SHEET = "DICT_4X4_50_ids0-1_40mm"
@@ -83,12 +83,11 @@ def test_markers_on_a_busy_folder_are_refused(tmp_path, held):
 
 
 # ---------------------------------------------------------------------------------------------- calibrate
-@pytest.fixture(scope="module")
-def report(views_dir, tmp_path_factory):  # noqa: F811 - the fixture imported above
-    """A calibration of 6 rendered views (computed once; the command's own calibration is replaced by it)."""
-    from ar_anchor.tools.calibrate import calibrate_source
-
-    return calibrate_source(str(copy_views(views_dir, tmp_path_factory.mktemp("shots"), 6)), spec())
+@pytest.fixture
+def report(six_view_report):
+    """A calibration of 6 rendered views (computed once: tests/tools/conftest.py; the command's own calibration is
+    replaced by it)."""
+    return six_view_report
 
 
 @pytest.fixture
