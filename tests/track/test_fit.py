@@ -93,6 +93,12 @@ def _run(frames: list[Frame], config: TrackerConfig = CONFIG) -> tuple[list[Fram
     return causal, smooth(causal, tracker.config)
 
 
+@functools.cache
+def _run_of(clip) -> tuple[list[FrameResult], list[FrameResult]]:
+    """``_run(clip())``, once per clip (``turntable``, ``stills``, ``cut``): the tests only read its results."""
+    return _run(clip())
+
+
 def _rows(results: list[FrameResult]):
     for result in results:
         target = result.targets.get(M0)
@@ -120,13 +126,13 @@ def test_unrelated_stills_played_as_a_sequence_fit_every_frame(mode: str, photos
     a pose held over from another photo. (Before the check, the turntable's outputs missed their photos
     by up to 6.3 px, where the photo's own solution fits within 0.5 px.)"""
     frames = photos()
-    causal, offline = _run(frames)
+    causal, offline = _run_of(photos)
     _assert_every_output_fits(causal if mode == "causal" else offline, frames)
 
 
 def test_unrelated_stills_start_new_segments() -> None:
     """Photos far apart in pose continue neither branch of the track: new segments, said by an event."""
-    causal, _ = _run(stills())
+    causal, _ = _run_of(stills)
     starts = sum(any(e.kind in SEGMENT_STARTS for e in t.events) for _, t in _rows(causal))
     assert starts >= len(stills()) // 2
 
@@ -136,7 +142,7 @@ def test_a_cut_starts_a_new_segment_and_nothing_crosses_it() -> None:
     view's evidence back across the cut: the far view, undecidable alone, is never ``tracked`` wrong,
     and no gap is bridged across the cut."""
     frames = cut()
-    causal, offline = _run(frames)
+    causal, offline = _run_of(cut)
     at_cut = causal[40].targets[M0]
     assert {e.kind for e in at_cut.events} & {"jump", "refit"}, at_cut.events
     for results in (causal, offline):
@@ -149,7 +155,7 @@ def test_the_far_view_alone_is_not_decided_by_the_near_one() -> None:
     backward pass's evidence from the near view is not carried across the segment boundary)."""
     frames = cut()
     _, alone = _run(frames[:40])
-    _, with_cut = _run(frames)
+    _, with_cut = _run_of(cut)
     before = [r.targets[M0].state for r in alone if M0 in r.targets]
     after = [r.targets[M0].state for r in with_cut[:40] if M0 in r.targets]
     assert before == after

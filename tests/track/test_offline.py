@@ -44,6 +44,12 @@ def approach() -> tuple[list[FrameResult], list[dict[str, Pose]]]:
 
 
 @functools.cache
+def approach_offline() -> list[FrameResult]:
+    """The offline replay of :func:`approach` (two tests read it)."""
+    return smooth(approach()[0], TrackerConfig())
+
+
+@functools.cache
 def sheet_orbit() -> tuple[list[FrameResult], list[dict[str, Pose]]]:
     """Two markers of one sheet, the camera orbiting at 0.6 m (both decided, steady motion)."""
     markers, _ = marker_sheet((0, 1), length_m=0.05, cols=2)
@@ -81,7 +87,7 @@ def _error(result: FrameResult, truth: dict[str, Pose], name: TargetId) -> float
 @pytest.mark.slow
 def test_an_approaching_marker_is_tracked_and_right_from_its_first_frame_offline():
     results, truths = approach()
-    offline = smooth(results, TrackerConfig())
+    offline = approach_offline()
     seen = [i for i, r in enumerate(results) if M0 in r.targets]
     first = seen[0]
     # the live filter cannot decide the far frames ...
@@ -194,7 +200,7 @@ def test_a_repeated_frame_repeats_the_offline_answer():
 
 def test_the_offline_result_keeps_the_live_filter_s_beside_it():
     results, _ = approach()
-    offline = smooth(results, TrackerConfig())
+    offline = approach_offline()
     assert all(o.causal_targets is r.targets or o.causal_targets == r.targets for o, r in zip(offline, results))
 
 

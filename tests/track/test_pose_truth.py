@@ -19,6 +19,7 @@ from ar_anchor.track.filtering import TargetTrack
 from ar_anchor.track.pose import MarkerPose, PoseHypothesis
 from ar_anchor.track.tracker import Tracker
 from tests.helpers import mirrored
+from tests.track.scenes import PAIR_CAMERA, pair_frame
 
 CAMERA = CameraModel.from_fov(1280, 720, 1000.0)
 DT_NS = 33_333_333
@@ -49,18 +50,11 @@ def lone_config(**detector) -> TrackerConfig:
 def test_a_marker_lost_in_one_frame_is_found_in_the_next_with_roi_tracking():
     # given two markers followed with ROI tracking (full-frame search only every 15 frames), and one frame
     # in which marker 1 is not to be seen (a blurred or occluded frame)
-    trajectory = Trajectory(kind="static", near_m=0.6, look_at=(0.05, 0.0, 0.0))
-    one = PlacedMarker(0, 0.05, Pose(np.zeros(3), np.array([-0.06, 0.0, 0.0])))
-    two = PlacedMarker(1, 0.05, Pose(np.zeros(3), np.array([0.16, 0.03, 0.0])))
-    both, alone = (
-        SyntheticSource(SyntheticScene(camera=CAMERA, markers=m, trajectory=trajectory, frames=12, noise_sigma=1.0))
-        for m in ((one, two), (one,))
-    )
-    tracker = Tracker(lone_config(roi=True, roi_full_every=15), CAMERA)
+    # (a still camera 0.6 m away: a view test_roi plays too, rendered once: tests/track/scenes.py)
+    tracker = Tracker(lone_config(roi=True, roi_full_every=15), PAIR_CAMERA)
     found = []
     for index in range(12):
-        source = alone if index == 5 else both
-        result = tracker.process(source.frame(index))
+        result = tracker.process(pair_frame(index, both=index != 5))
         found.append(sorted(int(i) for i in result.detections.ids))
     # then it is found again in the very next frame, not at the next periodic full-frame search
     assert found[4] == [0, 1] and found[5] == [0]
@@ -279,9 +273,10 @@ def test_a_motion_blurred_frame_is_not_predicted_through():
     source = SyntheticSource(
         SyntheticScene(camera=CAMERA, markers=(one, two), trajectory=trajectory, frames=12, noise_sigma=1.0)
     )
+    frames = [source.frame(index) for index in range(10)]  # (rendered once: both trackers below see them)
     tracker = Tracker(lone_config(), CAMERA)
-    for index in range(10):
-        result = tracker.process(source.frame(index))
+    for frame in frames:
+        result = tracker.process(frame)
     assert {"marker:0", "marker:1"} <= set(result.targets)
     image = source.frame(10).image
     kernel = np.zeros((1, 61), np.float32)
@@ -293,8 +288,8 @@ def test_a_motion_blurred_frame_is_not_predicted_through():
     assert tracker.tracks["marker:0"].alive
     # and a marker of a sharp frame with a dropout is predicted
     tracker = Tracker(lone_config(), CAMERA)
-    for index in range(10):
-        tracker.process(source.frame(index))
+    for frame in frames:
+        tracker.process(frame)
     alone = SyntheticSource(
         SyntheticScene(camera=CAMERA, markers=(one,), trajectory=trajectory, frames=12, noise_sigma=1.0)
     )

@@ -15,6 +15,7 @@ from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import PlacedBoard, PlacedMarker, SyntheticScene, Trajectory
 from ar_anchor.track.detection import Detector, MarkerDetections, Region, plan_regions
 from ar_anchor.track.tracker import Tracker
+from tests.track.scenes import PAIR_CAMERA, pair_frame
 
 
 def orbit_frames(frames: int = 40, markers=((0, 0.05, (0.0, 0.0)),), size=(1280, 720, 1000.0)):
@@ -178,22 +179,14 @@ def test_region_corners_of_far_small_markers_match_full_frame_corners():
 def test_a_newly_appearing_marker_is_found_within_the_full_frame_period(full_every):
     # given a tracker following marker 0 with ROI tracking (searching around it only), and then marker 1
     # appearing elsewhere in the image (frame `switch` on)
-    camera = CameraModel.from_fov(1280, 720, 1000.0)
-    trajectory = Trajectory(kind="static", near_m=0.6, look_at=(0.05, 0.0, 0.0))
-    one = PlacedMarker(0, 0.05, Pose(np.zeros(3), np.array([-0.06, 0.0, 0.0])))
-    two = PlacedMarker(1, 0.05, Pose(np.zeros(3), np.array([0.16, 0.03, 0.0])))
+    # (a still camera 0.6 m away, new sensor noise every frame: the view test_pose_truth and the tests below
+    # play too, rendered once: tests/track/scenes.py)
+    camera = PAIR_CAMERA
     switch = 7
-    scenes = [
-        SyntheticScene(
-            camera=camera, markers=markers, trajectory=trajectory, frames=switch + 3 * full_every, noise_sigma=1.0
-        )
-        for markers in ((one,), (one, two))
-    ]
-    before, after = (SyntheticSource(scene) for scene in scenes)  # (new sensor noise every frame)
     tracker = Tracker(tracker_config(True, ids=(0, 1), roi_full_every=full_every), camera)
     found_at = None
     for index in range(switch + 3 * full_every):
-        image = (before if index < switch else after).frame(index).image
+        image = pair_frame(index, both=index >= switch).image
         result = tracker.process(Frame(image, index, index * 33_333_333))
         assert "marker:0" in result.targets
         if index < switch:
@@ -206,18 +199,11 @@ def test_a_newly_appearing_marker_is_found_within_the_full_frame_period(full_eve
 
 
 def _vanishing_marker_frames(length_m: float, frames: int = 14, vanish: int = 4):
-    """Two markers, static camera; marker 1 is gone from frame ``vanish`` on (remembered, so every frame
-    after that is a full-frame search)."""
-    camera = CameraModel.from_fov(1280, 720, 1000.0)
-    trajectory = Trajectory(kind="static", near_m=0.6, look_at=(0.05, 0.0, 0.0))
-    one = PlacedMarker(0, length_m, Pose(np.zeros(3), np.array([-0.06, 0.0, 0.0])))
-    two = PlacedMarker(1, length_m, Pose(np.zeros(3), np.array([0.16, 0.03, 0.0])))
-    sources = [
-        SyntheticSource(SyntheticScene(camera=camera, markers=m, trajectory=trajectory, frames=frames, noise_sigma=1.0))
-        for m in ((one, two), (one,))
-    ]
-    return camera, [
-        Frame(sources[index >= vanish].frame(index).image, index, index * 33_333_333) for index in range(frames)
+    """Two markers, static camera 0.6 m away; marker 1 is gone from frame ``vanish`` on (remembered, so every
+    frame after that is a full-frame search). The renders are shared (tests/track/scenes.py): read-only."""
+    return PAIR_CAMERA, [
+        Frame(pair_frame(index, both=index < vanish, length_m=length_m).image, index, index * 33_333_333)
+        for index in range(frames)
     ]
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -18,6 +19,15 @@ from ar_anchor.targets import TargetId, TrackState
 def _frames(count: int, seed: int = 0):
     config, camera = demo_config(), CameraModel.default_synthetic()
     return config, camera, list(SyntheticSource(demo_scene(config, camera, frames=count, seed=seed)))
+
+
+@functools.cache
+def _ten_frames():
+    """``_frames(10)``, rendered once for the two tests of a reset (read-only images)."""
+    config, camera, frames = _frames(10)
+    for frame in frames:
+        frame.image.flags.writeable = False
+    return config, camera, tuple(frames)
 
 
 def _same(a, b) -> bool:
@@ -47,7 +57,7 @@ def test_process_returns_poses_close_to_truth_for_every_target():
 
 
 def test_reset_makes_the_next_frame_a_first_frame():
-    config, camera, frames = _frames(10)
+    config, camera, frames = _ten_frames()
     used = Tracker(config, camera)
     for frame in frames[:6]:
         used.process(frame)
@@ -60,7 +70,7 @@ def test_reset_makes_the_next_frame_a_first_frame():
 
 def test_without_reset_history_matters():
     """The reset test above can fail: a tracker with history answers differently from a fresh one."""
-    config, camera, frames = _frames(10)
+    config, camera, frames = _ten_frames()
     used = Tracker(config, camera)
     for frame in frames[:6]:
         used.process(frame)
