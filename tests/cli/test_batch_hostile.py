@@ -106,12 +106,11 @@ def test_names_from_stems_are_made_safe_like_manifest_names(tmp_path):
 def test_a_stem_of_dot_dot_writes_inside_out_and_the_earlier_run_beside_it_is_kept(media, tmp_path):
     # given an earlier run in runs/ (as `replay --out runs` left it) and clips named ...mp4 and ..mp4
     earlier = tmp_path / "runs"
-    replay = subprocess.run(
-        [sys.executable, "-m", "ar_anchor", "-q", "replay", str(media / "clip.mp4"), "--camera",
-         str(media / "camera.yml"), "--out", str(earlier)],
-        capture_output=True, text=True, check=False, timeout=120,
-    )  # fmt: skip
-    assert replay.returncode == 0, replay.stderr
+    # (in-process: only the run's files are the given)
+    replay = run_main(
+        ["-q", "replay", str(media / "clip.mp4"), "--camera", str(media / "camera.yml"), "--out", str(earlier)]
+    )
+    assert replay.code == 0, replay.describe()
     before = _tree(earlier)
     _clip(media, tmp_path / "src" / "...mp4")
     _clip(media, tmp_path / "src" / "..mp4")
@@ -170,11 +169,8 @@ def test_a_recording_folder_holding_the_users_files_is_never_written(media, tmp_
 def test_a_recording_folder_holding_another_commands_run_is_never_cleared(media, tmp_path):
     # given --out/clip holding a live session: its summary.json and its raw recording, the user's only copy
     folder = tmp_path / "out" / "clip"
-    demo = subprocess.run(
-        [sys.executable, "-m", "ar_anchor", "-q", "demo", "--frames", "2", "--out", str(folder)],
-        capture_output=True, text=True, check=False, timeout=120,
-    )  # fmt: skip
-    assert demo.returncode == 0, demo.stderr
+    demo = run_main(["-q", "demo", "--frames", "2", "--out", str(folder)])  # (in-process: its files are the given)
+    assert demo.code == 0, demo.describe()
     summary = json.loads((folder / "summary.json").read_text())
     (folder / "summary.json").write_text(json.dumps({**summary, "command": "live"}))
     (folder / "raw.mkv").write_bytes(b"the only copy")

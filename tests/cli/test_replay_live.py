@@ -1,4 +1,6 @@
-"""End-to-end ``ar-anchor replay`` and ``ar-anchor live``, run as real subprocesses.
+"""End-to-end ``ar-anchor replay`` and ``ar-anchor live``: as real subprocesses where the process is what is
+checked (exit codes and error lines of bad input, Ctrl-C), in-process through ``main()`` (as the command runs
+it) where only a successful run's outputs are.
 
 Replays are checked against the ground truth of a synthetic sequence written as PNGs, lossless
 FFV1 (Matroska) and lossy VP9 (MP4); bad sources are exit 2 with one line naming them; a
@@ -29,12 +31,15 @@ from ar_anchor.synthetic import PlacedMarker, SyntheticScene, Trajectory
 from tests.helpers import (
     POSES_HEADER,
     TIMEOUT_S,
+    CliResult,
     assert_no_traceback,
     cli,
     count_decoded_frames,
     describe,
     error_lines,
+    run_main,
     verify_rrd,
+    working_directory,
 )
 
 pytestmark = pytest.mark.slow
@@ -49,6 +54,19 @@ MARKER_LENGTH_M = 0.05
 
 def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(cli(args), cwd=cwd, capture_output=True, text=True, timeout=TIMEOUT_S, check=False)
+
+
+def run_in_process(args: list[str], cwd: Path) -> CliResult:
+    """``ar-anchor ARGS`` in ``cwd``, in-process (``main()``): for a run whose outputs are checked, not its process."""
+    with working_directory(cwd):
+        return run_main(args)
+
+
+def assert_ran(result: CliResult) -> None:
+    """An in-process run that succeeded: exit 0, no traceback, no error line."""
+    assert result.code == 0, result.describe()
+    assert "Traceback" not in result.stdout + result.stderr, result.describe()
+    assert "internal error" not in result.stderr and not error_lines(result.stderr), result.describe()
 
 
 def run_all(commands: dict[str, tuple[list[str], Path]]) -> dict[str, subprocess.CompletedProcess[str]]:
@@ -190,29 +208,29 @@ def sequence(tmp_path_factory) -> Sequence:
 
 @pytest.fixture(scope="module")
 def replays(sequence, tmp_path_factory):
-    """``ar-anchor -q replay`` of the PNG folder, the FFV1 .mkv and the VP9 .mp4 (run concurrently)."""
+    """``ar-anchor -q replay`` of the PNG folder, the FFV1 .mkv and the VP9 .mp4, in-process (their outputs are
+    what the tests read, never written to)."""
     cwd = tmp_path_factory.mktemp("replays")
     sources = {"png": sequence.png_dir, "ffv1": sequence.mkv, "vp9": sequence.mp4}
-    commands = {
+    return {
         kind: (
-            ["-q", "replay", str(source), "--camera", str(sequence.camera_yml), "--out", f"out_{kind}"]
-            + (["--sequence"] if kind == "png" else []),  # (a video's frames as images: a sequence, not stills)
-            cwd,
+            run_in_process(
+                ["-q", "replay", str(source), "--camera", str(sequence.camera_yml), "--out", f"out_{kind}"]
+                + (["--sequence"] if kind == "png" else []),  # (a video's frames as images: a sequence, not stills)
+                cwd,
+            ),
+            cwd / f"out_{kind}",
         )
         for kind, source in sources.items()
         if source is not None
     }
-    results = run_all(commands)
-    return {kind: (result, cwd / f"out_{kind}") for kind, result in results.items()}
 
 
-def get_replay(replays, kind: str) -> tuple[subprocess.CompletedProcess[str], Path]:
+def get_replay(replays, kind: str) -> tuple[CliResult, Path]:
     if kind not in replays:
         pytest.skip(f"this OpenCV build cannot write {kind}")
     result, out = replays[kind]
-    assert result.returncode == 0, describe(result)
-    assert_no_traceback(result)
-    assert not error_lines(result.stderr), describe(result)
+    assert_ran(result)
     return result, out
 
 
@@ -296,7 +314,7 @@ def test_mp4_is_referenced_as_a_video_asset_and_mkv_logs_jpeg(replays):
 @pytest.mark.realdata
 def test_replay_of_a_real_video(realdata, tmp_path):
     folder = realdata / "aruco_testdata" / "chessboard"
-    result = run_cli(
+    result = run_in_process(
         [
             "-q",
             "replay",
@@ -312,8 +330,7 @@ def test_replay_of_a_real_video(realdata, tmp_path):
         ],
         tmp_path,
     )
-    assert result.returncode == 0, describe(result)
-    assert_no_traceback(result)
+    assert_ran(result)
     summary = read_summary(tmp_path / "out")
     assert summary["status"] == "completed"
     assert summary["frames"] == 149
@@ -425,10 +442,9 @@ def test_camera_with_another_aspect_ratio_is_exit_2_naming_camera(tmp_path, sequ
 def test_camera_with_the_same_aspect_ratio_is_scaled_with_a_warning(tmp_path, sequence):
     # given the sequence's camera calibrated at twice the resolution (same lens, same aspect)
     CameraModel.from_fov(1280, 960, 1200.0).to_yaml(tmp_path / "cam960.yml")
-    result = run_cli(["-q", "replay", str(sequence.png_dir), "--camera", "cam960.yml", "--out", "out"], tmp_path)
-    assert result.returncode == 0, describe(result)
-    assert_no_traceback(result)
-    assert "scaling intrinsics" in result.stderr, describe(result)
+    result = run_in_process(["-q", "replay", str(sequence.png_dir), "--camera", "cam960.yml", "--out", "out"], tmp_path)
+    assert_ran(result)
+    assert "scaling intrinsics" in result.stderr, result.describe()
     # then the scaled intrinsics are the sequence's own: the poses are accurate
     rows = [r for r in read_poses(tmp_path / "out" / "poses.csv") if r["target"] == "marker:0"]
     assert [int(r["frame"]) for r in rows] == list(range(FRAMES))
@@ -521,13 +537,8 @@ def test_sigint_before_an_offline_replay_writes_leaves_empty_complete_outputs_an
 
 
 def test_live_synthetic_device_writes_outputs(tmp_path):
-    result = run_cli(
-        [*LIVE_15_FRAMES, "--out", "out"],
-        tmp_path,
-    )
-    assert result.returncode == 0, describe(result)
-    assert_no_traceback(result)
-    assert not error_lines(result.stderr), describe(result)
+    result = run_in_process([*LIVE_15_FRAMES, "--out", "out"], tmp_path)
+    assert_ran(result)
     out = tmp_path / "out"
     summary = read_summary(out)
     assert summary["status"] == "completed"
@@ -547,12 +558,8 @@ def test_live_synthetic_device_writes_outputs(tmp_path):
 
 def test_live_record_then_replay_is_frame_exact(tmp_path):
     # given a recorded live run
-    result = run_cli(
-        [*LIVE_15_FRAMES, "--record", "--out", "out", "--video-out", "live_ar.mp4"],
-        tmp_path,
-    )
-    assert result.returncode == 0, describe(result)
-    assert_no_traceback(result)
+    result = run_in_process([*LIVE_15_FRAMES, "--record", "--out", "out", "--video-out", "live_ar.mp4"], tmp_path)
+    assert_ran(result)
     assert count_decoded_frames(tmp_path / "live_ar.mp4") == 15  # the annotated video: every processed frame
     out = tmp_path / "out"
     for name in ("raw.mkv", "raw.mkv.timestamps.csv", "camera.yml", "poses.csv", "summary.json", "recording.rrd"):
@@ -571,18 +578,14 @@ def test_live_record_then_replay_is_frame_exact(tmp_path):
     # camera ran with (the demo scene's: a real recording tracks exactly what its --config says), --causal
     # (as live decides) and by default (with the whole recording)
     demo = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"
-    replays = run_all(
-        {
-            mode: (
-                ["-q", "replay", str(out / "raw.mkv"), "--config", str(demo), "--out", f"out_{mode}", *extra],
-                tmp_path,
-            )
-            for mode, extra in (("causal", ["--causal", "--video-out", "replay.mkv"]), ("offline", []))
-        }
-    )
+    replays = {
+        mode: run_in_process(
+            ["-q", "replay", str(out / "raw.mkv"), "--config", str(demo), "--out", f"out_{mode}", *extra], tmp_path
+        )
+        for mode, extra in (("causal", ["--causal", "--video-out", "replay.mkv"]), ("offline", []))
+    }
     for replay in replays.values():
-        assert replay.returncode == 0, describe(replay)
-        assert_no_traceback(replay)
+        assert_ran(replay)
     assert count_decoded_frames(tmp_path / "replay.mkv") == 15
     # then the causal replay sees the very same frames and decides as live did: identical poses.csv,
     # indices and timestamps included
@@ -622,9 +625,8 @@ def test_a_long_run_is_recorded_in_parts_that_each_verify(tmp_path):
     # given a live run whose recording is split every 1.2 s (part_minutes 0.02)
     (tmp_path / "parts.toml").write_text("[recording]\npart_minutes = 0.02\n")
     args = ["-q", "live", "--device", "synthetic", "--width", "320", "--height", "180", "--max-frames", "120"]
-    result = run_cli([*args, "--config", "parts.toml", "--out", "out"], tmp_path)
-    assert result.returncode == 0, describe(result)
-    assert_no_traceback(result)
+    result = run_in_process([*args, "--config", "parts.toml", "--out", "out"], tmp_path)
+    assert_ran(result)
     # then the recording is recording.rrd, recording.part2.rrd, ... in the summary, each a complete file
     parts = read_summary(tmp_path / "out")["recording_parts"]
     assert parts[:2] == ["recording.rrd", "recording.part2.rrd"] and len(parts) >= 3
@@ -632,4 +634,4 @@ def test_a_long_run_is_recorded_in_parts_that_each_verify(tmp_path):
     for name in parts:
         verify_rrd(tmp_path / "out" / name)
     # and the run's last line lists every part, in order
-    assert f"recording.rrd, {', '.join(parts[1:])}" in result.stdout.strip().splitlines()[-1], describe(result)
+    assert f"recording.rrd, {', '.join(parts[1:])}" in result.stdout.strip().splitlines()[-1], result.describe()

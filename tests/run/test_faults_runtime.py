@@ -30,6 +30,7 @@ from tests.helpers import (
     count_decoded_frames,
     describe,
     error_lines,
+    run_main,
     verify_rrd,
 )
 
@@ -77,18 +78,16 @@ def interrupt(args: list[str], cwd: Path, signum: int, after_s: float) -> subpro
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory) -> Path:
-    """A 240-frame lossless recording of the synthetic camera (raw.mkv, camera.yml beside it)."""
+    """A 96-frame lossless recording of the synthetic camera (raw.mkv, its timestamps and camera.yml beside it),
+    recorded in-process: only the files are used, by the replays the signals interrupt.
+
+    96 frames, not more: a replay of it with ``--video-out`` costs about 70 ms of CPU a frame (measured on this
+    2-core machine: 6.7 s for the 96), so it runs about 5 s after its poses.csv appears, far beyond the 0-0.8 s
+    within which the signal comes; every replay case is still interrupted mid-run."""
     root = tmp_path_factory.mktemp("clip")
-    live = ["-q", "live", "--device", "synthetic", "--width", "640", "--height", "360", "--max-frames", "240"]
-    result = subprocess.run(
-        cli([*live, "--record", "--out", "rec", "--no-overlay"]),
-        cwd=root,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert result.returncode == 0, describe(result)
+    live = ["-q", "live", "--device", "synthetic", "--width", "640", "--height", "360", "--max-frames", "96"]
+    result = run_main([*live, "--record", "--out", str(root / "rec"), "--no-overlay"])
+    assert result.code == 0, result.describe()
     return root / "rec" / "raw.mkv"
 
 
@@ -132,15 +131,18 @@ def _limit_file_size(limit_bytes: int):
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_FSIZE semantics checked on Linux")
 def test_a_full_disk_is_one_clear_error_and_what_was_written_stays_valid(tmp_path):
-    # given a demo whose files may not grow beyond 3 MB (the recording grows fastest)
+    # given a demo whose files may not grow beyond 1.5 MB (the recording grows fastest): the write fails after
+    # 17-39 of its 120 frames (measured on this 2-core machine; 3 MB of a 300-frame demo: after 37-51), so the run
+    # still stops mid-way on recording.rrd; a demo's cost grows with --frames even when it stops early (~12 ms of
+    # CPU a frame), and each frame before the limit costs ~0.2 s
     result = subprocess.run(
-        cli(["-q", "demo", "--frames", "300", "--out", "out"]),
+        cli(["-q", "demo", "--frames", "120", "--out", "out"]),
         cwd=tmp_path,
         capture_output=True,
         text=True,
         timeout=180,
         check=False,
-        preexec_fn=_limit_file_size(3_000_000),
+        preexec_fn=_limit_file_size(1_500_000),
     )
     # then it stops with exit 1 and one line naming the file that could not be written
     assert result.returncode == EXIT_FAILURE, describe(result)
@@ -151,7 +153,7 @@ def test_a_full_disk_is_one_clear_error_and_what_was_written_stays_valid(tmp_pat
     # and poses.csv and summary.json (small files) are complete up to where the run stopped
     summary = json.loads((tmp_path / "out" / "summary.json").read_text(encoding="utf-8"))
     assert summary["status"] == "failed"
-    assert 0 < summary["frames"] < 300
+    assert 0 < summary["frames"] < 120
     with (tmp_path / "out" / "poses.csv").open(newline="", encoding="utf-8") as handle:
         rows = list(csv.reader(handle))
     assert ",".join(rows[0]) == POSES_HEADER and all(len(row) == len(rows[0]) for row in rows[1:])
