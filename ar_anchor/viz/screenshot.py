@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 LAYOUT_NAMES = ("full", "overlay", "camera", "3d")
 
 INSTALL_HINT = "install it (apt install chromium) or name it with --chromium PATH"
-_POLL_S = 1.0  # how often the viewer's state is read while it loads
+_POLL_S = 0.25  # how often the viewer's state is read while it loads (a cheap call)
 _NO_FRAMES_S = 15.0  # loaded this long without a `frame` timeline: the recording has none
 _QUIET_S = 6.0  # the page unchanged this long: the picture has settled
 
