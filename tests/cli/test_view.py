@@ -22,7 +22,7 @@ from ar_anchor.cli import view
 from ar_anchor.errors import EXIT_INTERRUPTED, EXIT_USAGE, InputError
 from ar_anchor.viz import viewer
 from tests.browser import Browser, find_chromium
-from tests.helpers import cli, describe
+from tests.helpers import cli, describe, run_main, working_directory
 
 REPO = Path(__file__).resolve().parents[2]
 URL_LINE = re.compile(r"(?:view: open|watch the run at) (http://\S+)")
@@ -409,8 +409,8 @@ def test_the_web_viewer_shows_the_overlay_in_the_camera_view(tmp_path):
     started = time.monotonic()
     # given a short demo run (a still camera near the markers: the overlay is large; every frame shows it)
     out = tmp_path / "run"
-    argv = ["-q", "demo", "--frames", "10", "--trajectory", "static", "--out", str(out)]
-    subprocess.run(cli(argv), check=True, capture_output=True, timeout=300)
+    demo = run_main(["-q", "demo", "--frames", "10", "--trajectory", "static", "--out", str(out)])  # (its files only)
+    assert demo.code == 0, demo.describe()
     # when its recording is served and opened in headless Chromium
     process = subprocess.Popen(
         cli(["view", "--web", "--port", "0", "--grpc-port", "0", str(out / "recording.rrd")]),
@@ -566,8 +566,9 @@ def _best_match(region: np.ndarray, frames: dict[int, np.ndarray]) -> tuple[int,
 def test_a_screenshot_of_a_split_recording_draws_exactly_the_frame_asked_for(tmp_path):
     # given a demo run recorded in several parts (the frame asked for is in a later one)
     (tmp_path / "parts.toml").write_text(PARTS_TOML)
-    argv = ["-q", "demo", "--frames", "60", "--config", "parts.toml", "--out", "run"]
-    subprocess.run(cli(argv), check=True, capture_output=True, timeout=300, cwd=tmp_path)
+    with working_directory(tmp_path):  # (in-process: only the run's files are the given)
+        demo = run_main(["-q", "demo", "--frames", "60", "--config", "parts.toml", "--out", "run"])
+    assert demo.code == 0, demo.describe()
     parts = json.loads((tmp_path / "run" / "summary.json").read_text())["recording_parts"]
     assert len(parts) >= 3, parts
     # when the run's folder is screenshot at frame 45 in the camera layout (in a smaller window than the default
