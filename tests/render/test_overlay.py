@@ -28,6 +28,7 @@ from ar_anchor.track.corners import refine_corners_by_edges
 from ar_anchor.track.detection import MarkerDetections
 from ar_anchor.track.tracker import FrameResult, TargetResult, Tracker
 from ar_anchor.viz.sinks import Recording
+from tests.helpers import run_main, working_directory
 
 REPO = Path(__file__).resolve().parents[2]
 DARK = (30, 30, 30)
@@ -320,10 +321,16 @@ def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     )
 
 
+def run_in_process(args: list[str], cwd: Path) -> None:
+    """``ar-anchor ARGS`` in ``cwd`` through ``main()`` (in-process: the runs whose files are checked), exit 0."""
+    with working_directory(cwd):
+        result = run_main(args)
+    assert result.code == 0, result.describe()
+
+
 @pytest.mark.slow
 def test_demo_video_out_has_one_frame_per_processed_frame(tmp_path):
-    result = run_cli(["-q", "demo", "--frames", "12", "--out", "run", "--video-out", "demo.mp4"], tmp_path)
-    assert result.returncode == 0, result.stderr
+    run_in_process(["-q", "demo", "--frames", "12", "--out", "run", "--video-out", "demo.mp4"], tmp_path)
     capture = cv2.VideoCapture(str(tmp_path / "demo.mp4"))
     frames = 0
     while capture.read()[0]:
@@ -371,8 +378,7 @@ def test_recording_holds_the_overlay_meshes_under_the_projected_world_and_no_ove
     rerun = Path(sys.executable).with_name("rerun")
     if not rerun.exists():
         pytest.skip(f"{rerun} not found")
-    result = run_cli(["-q", "demo", "--frames", "8", "--out", "run"], tmp_path)
-    assert result.returncode == 0, result.stderr
+    run_in_process(["-q", "demo", "--frames", "8", "--out", "run"], tmp_path)
     recording = tmp_path / "run" / "recording.rrd"
     printed = subprocess.run(
         [str(rerun), "rrd", "print", str(recording)], capture_output=True, text=True, timeout=120, check=True
