@@ -10,7 +10,7 @@ import pytest
 
 # numpy's OpenBLAS on one thread in this process and the workers it starts, as the ``ar-anchor`` command runs
 # it (ar_anchor.cli.main._one_blas_thread): the package's code in-process as in a run, and no BLAS pool
-# spinning beside each test (the suite's CPU time fell by 8 %, measured on 2 cores: docs/development.md)
+# spinning beside each test (the suite's CPU time fell by 6 %, measured on 2 cores: docs/development.md)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from ar_anchor.camera import CameraModel  # noqa: E402

@@ -19,7 +19,6 @@ Budgets: tests/helpers.py (CI: the counts below; ``HYPOTHESIS_PROFILE=long``: 20
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import itertools
 import json
@@ -35,7 +34,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from ar_anchor.camera import CameraModel
-from tests.helpers import CliResult, assert_clean_exit, error_lines, fuzz_settings, outcome, run_main
+from tests.helpers import (
+    CliResult,
+    assert_clean_exit,
+    error_lines,
+    fuzz_settings,
+    outcome,
+    run_main,
+    working_directory,
+)
 
 pytestmark = pytest.mark.slow  # fuzzing and end-to-end CLI runs: the full suite, not the fast tier
 
@@ -85,16 +92,6 @@ def workspace(tmp_path_factory) -> Path:
 
 
 _counter = itertools.count()
-
-
-@contextlib.contextmanager
-def inside(folder: Path):
-    previous = Path.cwd()
-    os.chdir(folder)
-    try:
-        yield
-    finally:
-        os.chdir(previous)
 
 
 @pytest.fixture(autouse=True)
@@ -380,7 +377,7 @@ def check(result: CliResult, command: str, out: Path) -> None:
 def fuzz_command(workspace: Path, command: str, data) -> None:
     out = f"out{next(_counter)}"
     argv = data.draw(command_line(command, out), label="argv")
-    with inside(workspace):
+    with working_directory(workspace):
         result = run_main(argv)
     check(result, command, workspace / out)
 
@@ -427,7 +424,7 @@ def test_random_token_soup_exits_cleanly(workspace, stub_benchmarks, argv):
         argv += ["--reconnect-s", "0", "--stall-s", "5"]
     if "demo" in argv:
         argv += ["--frames", "2"]
-    with inside(workspace):
+    with working_directory(workspace):
         result = run_main(argv)
     assert_clean_exit(result)
     outcome(f"exit {result.code}" + (" (argparse)" if result.system_exit else ""))
@@ -439,7 +436,7 @@ def test_letters_in_every_numeric_option_are_usage_errors(workspace):
         for name in options:
             if name in ("--max-frames", "--frames", "--seed", "--fps", "--near", "--far", "--dpi", "--queue", "--cols"):
                 argv = [command, *(["x"] if command in POSITIONALS else []), name, "abc"]
-                with inside(workspace):
+                with working_directory(workspace):
                     result = run_main(argv)
                 assert result.system_exit and result.code == 2, result.describe()
                 assert name in result.stderr and "Traceback" not in result.stderr
@@ -456,21 +453,21 @@ def test_letters_in_every_numeric_option_are_usage_errors(workspace):
     ],
 )
 def test_demo_extreme_distances_are_usage_errors(workspace, extra):
-    with inside(workspace):
+    with working_directory(workspace):
         result = run_main(["-q", "demo", "--frames", "2", *extra, "--out", f"out{next(_counter)}"])
     assert_clean_exit(result)
     assert result.code == 2, result.describe()
 
 
 def test_demo_huge_blur_is_a_usage_error(workspace):
-    with inside(workspace):
+    with working_directory(workspace):
         result = run_main(["-q", "demo", "--frames", "2", "--blur", "1e300", "--out", f"out{next(_counter)}"])
     assert_clean_exit(result)
     assert result.code == 2, result.describe()
 
 
 def test_demo_huge_noise_is_a_usage_error(workspace):
-    with inside(workspace):
+    with working_directory(workspace):
         result = run_main(["-q", "demo", "--frames", "2", "--noise", "1e300", "--out", f"out{next(_counter)}"])
     assert_clean_exit(result)
     assert result.code == 2, result.describe()
@@ -479,7 +476,7 @@ def test_demo_huge_noise_is_a_usage_error(workspace):
 
 def test_live_connect_to_a_malformed_url_is_a_usage_error(workspace):
     out = f"out{next(_counter)}"
-    with inside(workspace):
+    with working_directory(workspace):
         result = run_main(
             ["-q", "live", "--device", "synthetic", "--width", "96", "--height", "54"]
             + ["--connect", "garbage", "--max-frames", "1", "--out", out]
@@ -494,7 +491,7 @@ def test_bench_out_that_is_a_file_is_a_clean_error(workspace, monkeypatch):
     import ar_anchor.bench.stability.report as bench
 
     monkeypatch.setattr(bench, "stability_scenarios", lambda quick: [])
-    with inside(workspace):
+    with working_directory(workspace):
         result = run_main(["-q", "bench", "stability", "--out", "a_file"])
     assert_clean_exit(result)
     errors = error_lines(result.stderr)
@@ -529,7 +526,7 @@ def test_video_out_avi_with_a_non_utf8_name_does_not_crash(tmp_path):
 )
 def test_found_by_fuzzing_are_usage_errors(workspace, argv, named):
     out = f"out{next(_counter)}"
-    with inside(workspace):
+    with working_directory(workspace):
         result = run_main(["-q", *argv, "--out", out])
     assert_clean_exit(result)
     errors = error_lines(result.stderr)
