@@ -58,8 +58,9 @@ class CliResult:
         return f"exit {self.code} (SystemExit: {self.system_exit})\nstdout: {self.stdout!r}\nstderr: {self.stderr!r}"
 
 
-def run_main(argv: Sequence[str]) -> CliResult:
-    """``ar_anchor.cli.main.main(argv)`` in-process, stdout/stderr captured, SystemExit turned into its code.
+def run_main(argv: Sequence[str], cwd: Path | None = None) -> CliResult:
+    """``ar_anchor.cli.main.main(argv)`` in-process (in ``cwd`` when given), stdout/stderr captured, SystemExit
+    turned into its code.
 
     main() changes process-wide state (the "ar_anchor" logger's handler, the SIGTERM handler);
     both are restored so that other tests see what they saw before.
@@ -72,7 +73,11 @@ def run_main(argv: Sequence[str]) -> CliResult:
     out, err = io.StringIO(), io.StringIO()
     system_exit = False
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        with (
+            working_directory(cwd) if cwd is not None else contextlib.nullcontext(),
+            contextlib.redirect_stdout(out),
+            contextlib.redirect_stderr(err),
+        ):
             try:
                 code = main(list(argv))
             except SystemExit as exc:

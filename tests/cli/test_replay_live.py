@@ -39,7 +39,6 @@ from tests.helpers import (
     error_lines,
     run_main,
     verify_rrd,
-    working_directory,
 )
 
 pytestmark = pytest.mark.slow
@@ -58,8 +57,7 @@ def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 
 def run_in_process(args: list[str], cwd: Path) -> CliResult:
     """``ar-anchor ARGS`` in ``cwd``, in-process (``main()``): for a run whose outputs are checked, not its process."""
-    with working_directory(cwd):
-        return run_main(args)
+    return run_main(args, cwd)
 
 
 def assert_ran(result: CliResult) -> None:

@@ -22,7 +22,7 @@ from ar_anchor.cli import view
 from ar_anchor.errors import EXIT_INTERRUPTED, EXIT_USAGE, InputError
 from ar_anchor.viz import viewer
 from tests.browser import Browser, find_chromium
-from tests.helpers import cli, describe, run_main, working_directory
+from tests.helpers import cli, describe, run_main
 
 REPO = Path(__file__).resolve().parents[2]
 URL_LINE = re.compile(r"(?:view: open|watch the run at) (http://\S+)")
@@ -566,8 +566,8 @@ def _best_match(region: np.ndarray, frames: dict[int, np.ndarray]) -> tuple[int,
 def test_a_screenshot_of_a_split_recording_draws_exactly_the_frame_asked_for(tmp_path):
     # given a demo run recorded in several parts (the frame asked for is in a later one)
     (tmp_path / "parts.toml").write_text(PARTS_TOML)
-    with working_directory(tmp_path):  # (in-process: only the run's files are the given)
-        demo = run_main(["-q", "demo", "--frames", "60", "--config", "parts.toml", "--out", "run"])
+    # (in-process: only the run's files are the given)
+    demo = run_main(["-q", "demo", "--frames", "60", "--config", "parts.toml", "--out", "run"], tmp_path)
     assert demo.code == 0, demo.describe()
     parts = json.loads((tmp_path / "run" / "summary.json").read_text())["recording_parts"]
     assert len(parts) >= 3, parts

@@ -28,7 +28,7 @@ from ar_anchor.track.corners import refine_corners_by_edges
 from ar_anchor.track.detection import MarkerDetections
 from ar_anchor.track.tracker import FrameResult, TargetResult, Tracker
 from ar_anchor.viz.sinks import Recording
-from tests.helpers import run_main, working_directory
+from tests.helpers import run_main
 
 REPO = Path(__file__).resolve().parents[2]
 DARK = (30, 30, 30)
@@ -323,8 +323,7 @@ def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
 
 def run_in_process(args: list[str], cwd: Path) -> None:
     """``ar-anchor ARGS`` in ``cwd`` through ``main()`` (in-process: the runs whose files are checked), exit 0."""
-    with working_directory(cwd):
-        result = run_main(args)
+    result = run_main(args, cwd)
     assert result.code == 0, result.describe()
 
 

@@ -39,7 +39,7 @@ from ar_anchor.tools.calibrate import (
     format_report,
     select_views,
 )
-from tests.helpers import run_main, working_directory
+from tests.helpers import run_main
 
 RERUN = Path(sys.executable).with_name("rerun")
 TIMEOUT_S = 60
@@ -185,8 +185,7 @@ def run_cli(args: list[str], cwd: Path, command: str = "calibrate") -> subproces
     """``ar-anchor calibrate ARGS`` run in-process in ``cwd`` (``tests.helpers.run_main``: the same ``main()``, its
     stdout and stderr captured; stderr is no terminal, as when piped): what it prints, writes and exits with is
     what these tests check, not the process (test_cli_writes_a_camera_file_and_a_recording runs a real one)."""
-    with working_directory(cwd):
-        result = run_main([command, *args])
+    result = run_main([command, *args], cwd)
     return subprocess.CompletedProcess([command, *args], result.code, result.stdout, result.stderr)
 
 
