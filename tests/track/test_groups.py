@@ -19,6 +19,8 @@ from ar_anchor.config import TrackerConfig, parse_config
 from ar_anchor.geometry import Pose, angle_between_deg, look_at, marker_corners_in_marker
 from ar_anchor.targets import TargetId
 from ar_anchor.track.groups import GroupLayout, GroupLearner, members_from_groups
+from ar_anchor.track.groups.evidence import _joint_fit_rms, _refine_lm_rms
+from ar_anchor.track.kernels import compiled_refine
 from ar_anchor.track.pose import BoardPose, MarkerPose, PoseHypothesis, solve_marker
 from ar_anchor.track.tracker import as_member
 
@@ -401,3 +403,29 @@ def test_a_group_that_keeps_a_consensus_when_two_members_swap_stays_tracked_on_i
     assert all(t.state is TrackState.TRACKED and set(t.markers_used) == {0, 2, 3, 5} for t in after)
     steps = [np.linalg.norm(b.pose.tvec - a.pose.tvec) for a, b in itertools.pairwise(after)]
     assert max(steps) < 0.01
+
+
+@pytest.mark.skipif(compiled_refine() is None, reason="the compiled pose polish is not built")
+def test_the_compiled_joint_fit_reaches_opencvs_fit_from_every_start():
+    # given two markers' eight corners (0.3 px noise) and starts near and far from the camera's pose,
+    # through a distorted camera, as the pair evidence fits them
+    rng = np.random.default_rng(11)
+    camera = CameraModel(CAMERA.camera_matrix, np.array([-0.2, 0.05, 0.001, -0.001, 0.0]), 640, 480)
+    square = marker_corners_in_marker(LENGTH)
+    points = np.concatenate([square, square + [0.09, 0.01, 0.0]])
+    compared = 0
+    for frame in range(40):
+        truth = _camera(frame).compose(Pose(np.zeros(3), np.array([0.02, -0.03, 0.0])))
+        image = camera.project(truth.apply(points)) + rng.normal(0.0, 0.3, (8, 2))
+        starts = [
+            Pose(truth.rvec + rng.normal(0.0, spread, 3), truth.tvec + rng.normal(0.0, spread / 10, 3))
+            for spread in (0.01, 0.05, 0.2)
+        ]
+        # when both refine from each start
+        compiled = _joint_fit_rms(points, image, starts, camera)
+        opencv = np.array([_refine_lm_rms(start, points, image, camera) for start in starts])
+        # then they agree wherever OpenCV converges (a fit within 1 px), to well below the 1 px agreement limit
+        converged = opencv < 1.0
+        assert np.all(np.abs(compiled[converged] - opencv[converged]) < 1e-3), (frame, compiled, opencv)
+        compared += int(converged.sum())
+    assert compared >= 100
