@@ -143,7 +143,7 @@ def cmd_live(args: argparse.Namespace) -> int:
         stall_s=args.stall_s,
     )
     try:
-        source = open_source(args.device, live=True, fps=args.fps, device=device, scene=scene)
+        source = open_source(args.device, live=True, fps=args.fps, device=device, scene=scene, frames=args.max_frames)
     except SourceError as err:  # the library names the device; the user typed it as --device
         if not str(err).startswith(str(args.device)):
             raise

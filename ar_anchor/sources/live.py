@@ -362,35 +362,46 @@ class SyntheticGrabber:
     frames, evenly spread over the scene, played forth and back so that the motion never jumps),
     held as JPEG (quality 95, as an MJPEG webcam delivers it) and decoded when due, which releases the
     GIL like a real capture does. ``cached=0`` renders every frame when due instead (slow: frames
-    whose time has passed are skipped, as a real camera's would be).
+    whose time has passed are skipped, as a real camera's would be). ``eager``: how many of the clip's
+    first frames to render when it opens (default all): a run that takes only a few frames
+    (``--max-frames``) does not wait for the whole clip; a clip frame not rendered yet is rendered when
+    it is first due (the frames due meanwhile are skipped, as above).
     """
 
     name = "synthetic"
 
-    def __init__(self, scene: SyntheticScene, *, loop: bool = True, cached: int = CLIP_FRAMES) -> None:
+    def __init__(
+        self, scene: SyntheticScene, *, loop: bool = True, cached: int = CLIP_FRAMES, eager: int | None = None
+    ) -> None:
         self.source = SyntheticSource(scene)
         self.scene = scene
         self.granted: Mapping[str, object] = {}  # nothing to negotiate: it renders at the scene's size and rate
         self.loop = loop
         self.cached = min(max(int(cached), 0), scene.frames)
-        self._clip: list[tuple[bytes, Mapping[str, Pose] | None]] = []
+        self.eager = self.cached if eager is None else min(max(int(eager), 1), self.cached)
+        self._clip: list[tuple[bytes, Mapping[str, Pose] | None] | None] = []
         self._start_ns: int | None = None
         self._next_slot = 0
 
     def open(self) -> tuple[int, int]:
-        """Restart the clock, render the cached clip once (JPEG); the camera's (width, height) in pixels."""
+        """Restart the clock, render the clip's first ``eager`` frames once (JPEG); the camera's (width, height)
+        in pixels."""
         self._start_ns = None
         self._next_slot = 0
         if self.cached >= 2 and not self._clip:
-            log.info("synthetic camera: rendering its %d-frame clip", self.cached)
-            for k in range(self.cached):
-                index = round(k * (self.scene.frames - 1) / (self.cached - 1))
-                frame = self.source.frame(index)
-                ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, 95])
-                if not ok:
-                    raise SourceError("synthetic camera: cannot encode its frames")
-                self._clip.append((jpeg.tobytes(), frame.truth))
+            log.info("synthetic camera: rendering %d of its %d-frame clip", self.eager, self.cached)
+            self._clip = [None] * self.cached
+            for k in range(self.eager):
+                self._clip[k] = self._render_clip_frame(k)
         return self.scene.camera.size
+
+    def _render_clip_frame(self, k: int) -> tuple[bytes, Mapping[str, Pose] | None]:
+        """The clip's frame ``k`` (of ``cached``, evenly spread over the scene) as JPEG, with its truth."""
+        frame = self.source.frame(round(k * (self.scene.frames - 1) / (self.cached - 1)))
+        ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        if not ok:
+            raise SourceError("synthetic camera: cannot encode its frames")
+        return jpeg.tobytes(), frame.truth
 
     def _frames(self) -> int:
         return len(self._clip) if self._clip else max(self.scene.frames, 1)
@@ -420,7 +431,10 @@ class SyntheticGrabber:
             return None  # the clip is over: like an unplugged camera
         index = self._clip_index(slot)
         if self._clip:
-            jpeg, truth = self._clip[index]
+            cached = self._clip[index]
+            if cached is None:
+                cached = self._clip[index] = self._render_clip_frame(index)
+            jpeg, truth = cached
             image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
         else:
             frame = self.source.frame(index)

@@ -123,6 +123,7 @@ def open_source(
     fps: float | None = None,
     device: DeviceSettings | None = None,
     scene: SyntheticScene | None = None,
+    frames: int | None = None,
 ) -> LiveSource: ...
 
 
@@ -141,6 +142,7 @@ def open_source(
     device: DeviceSettings | None = None,
     scene: SyntheticScene | None = None,
     max_pixels: int | None = None,
+    frames: int | None = None,
 ) -> FrameSource: ...
 
 
@@ -152,6 +154,7 @@ def open_source(
     device: DeviceSettings | None = None,
     scene: SyntheticScene | None = None,
     max_pixels: int | None = None,
+    frames: int | None = None,
 ) -> FrameSource:
     """The source ``spec`` names (see the module doc), opened; use it as a context manager.
 
@@ -159,7 +162,9 @@ def open_source(
     or the default synthetic scene's (default 30). ``device``: what else to ask of a device.
     ``scene``: what the synthetic camera shows (default :func:`live_demo_scene`). ``max_pixels``: a file's
     frames of more pixels are refused (an image skipped, a video not opened; default
-    :data:`~.image_header.MAX_IMAGE_PIXELS`, 50 MP), read from its header before it is decoded.
+    :data:`~.image_header.MAX_IMAGE_PIXELS`, 50 MP), read from its header before it is decoded. ``frames``:
+    how many frames the caller will take at most (``--max-frames``), if it knows: the synthetic camera then
+    renders no more than that of its clip before it starts (:class:`~.live.SyntheticGrabber`).
     Raises :class:`~ar_anchor.errors.SourceError` naming the spec when it cannot be opened (a named pipe, a
     socket or a device node where a file is due is said to be one), and an
     :class:`~ar_anchor.errors.InputError` naming the option for a frame rate or device setting out of range.
@@ -175,7 +180,7 @@ def open_source(
     grabber: Grabber
     if spec == SYNTHETIC:
         scene = scene or live_demo_scene(fps=_DEFAULT_FPS if fps is None else fps)
-        grabber, camera, fps = SyntheticGrabber(scene, loop=True), scene.camera, scene.fps
+        grabber, camera, fps = SyntheticGrabber(scene, loop=True, eager=frames), scene.camera, scene.fps
     else:
         name = spec if isinstance(spec, int) else os.fspath(spec)
         grabber = WebcamGrabber(name, width=settings.width, height=settings.height, fps=fps, fourcc=settings.fourcc)

@@ -299,6 +299,23 @@ def test_synthetic_camera_plays_its_rendered_clip_forth_and_back_with_the_truth_
     assert all(np.allclose(truth[k].tvec, last.truth[k].tvec) for k in truth)
 
 
+def test_a_synthetic_camera_asked_for_few_frames_renders_the_rest_of_its_clip_when_due():
+    # given a synthetic camera of a 5-frame clip for a run that takes 2 frames
+    scene = small_scene(frames=40, fps=200.0)
+    grabber = SyntheticGrabber(scene, cached=5, eager=2)
+    grabber.open()
+    # then it opens with the clip's first 2 frames rendered, the others not yet
+    assert [entry is not None for entry in grabber._clip] == [True, True, False, False, False]
+    # and a frame not rendered yet is rendered when due: the same clip frame, with its truth, as an eager one
+    eager = SyntheticGrabber(scene, cached=5)
+    eager.open()
+    grabber._next_slot = 3
+    captured = grabber.read()
+    assert grabber._clip[3] is not None and grabber._clip[3][0] == eager._clip[3][0]
+    truth = eager._clip[3][1]
+    assert all(np.allclose(captured.truth[k].tvec, truth[k].tvec) for k in truth)
+
+
 def test_close_stops_the_capture_thread():
     source = LiveSource(FakeGrabber(fps=100.0))
     source.start()
