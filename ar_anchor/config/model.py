@@ -340,6 +340,12 @@ class RecordingConfig:
         "frame's value is kept; a live viewer shows them up to N frames late (1: every frame)",
         in_range(1, 1000),
     )
+    flush_timeout_s: float = key(
+        10.0,
+        "how long the recording's writes may wait on its sinks (a viewer that stopped reading, a stalled disk) "
+        "before the run ends with an error naming them; checked every 2 s and at the end",
+        in_range(0.5, 600.0),
+    )
 
 
 OVERLAY_KINDS = ("cube", "mesh", "axes")

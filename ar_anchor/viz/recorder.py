@@ -335,7 +335,8 @@ class RerunRecorder:
         now = time.monotonic()
         if now - self._last_check >= _SINK_CHECK_S:
             self._last_check = now
-            recording.flush(timeout_s=10.0)  # a sink that died (disk full) fails the run now, not at its end
+            # a sink that died (disk full) or a viewer that stopped reading fails the run now, not at its end
+            recording.flush(timeout_s=self.settings.flush_timeout_s)
 
     def log_latency(self, stages: Mapping[str, float]) -> None:
         """Per-stage times (ms) of the current frame, as ``metrics/latency/<stage>`` (sent in batches)."""
@@ -567,13 +568,14 @@ class RerunRecorder:
             self.recording.clear("world/causal")
             self._causal_drawn = False
 
-    def close(self, timeout_s: float = 10.0) -> None:
+    def close(self, timeout_s: float | None = None) -> None:
         """Send the metrics kept, flush everything to the sinks and close the file (the .rrd is complete
         afterwards).
 
-        The flush is bounded: a viewer that went away must not hang the end of a run.
+        The flush is bounded (``timeout_s``, default ``[recording] flush_timeout_s``): a viewer that went
+        away must not hang the end of a run.
         """
         try:
             self.series.flush()
         finally:
-            self.recording.close(timeout_s=timeout_s)
+            self.recording.close(timeout_s=self.settings.flush_timeout_s if timeout_s is None else timeout_s)

@@ -159,9 +159,10 @@ class Recording:
             where = [self._named(self.files[-1])] if self.files else []
             if self.viewer_url is not None:
                 where.append(f"the viewer at {self.viewer_url}")
+            waited = f" within {timeout_s:g} s" if timed_out else ""
             message = (
-                f"{' and '.join(where) or 'recording'}: cannot write the recording ({err}: disk full, or the "
-                "viewer gone?); the file holds the frames logged before"
+                f"{' and '.join(where) or 'recording'}: cannot write the recording{waited} ({err}: disk full, or "
+                "the viewer gone?); the file holds the frames logged before"
             )
             if timed_out:
                 self._timed_out = message

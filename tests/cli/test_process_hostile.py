@@ -213,17 +213,20 @@ def test_a_second_ctrl_c_while_flushing_to_a_stalled_viewer_ends_the_run_at_once
 def test_a_run_that_ends_while_its_viewer_stalls_ends_on_its_own(tmp_path):
     # given a viewer that accepts the connection and never reads (rerun's disconnect and its at-exit
     # flush used to wait for it forever: a 60-frame demo did not end in 150 s)
+    # (its writes given 2 s, not the default 10: the same bound, sooner)
+    (tmp_path / "flush.toml").write_text("[recording]\nflush_timeout_s = 2.0\n")
     viewer = _StalledViewer()
     try:
-        args = ["-q", "demo", "--frames", "60", "--connect", f"rerun+http://127.0.0.1:{viewer.port}/proxy"]
-        result = subprocess.run(cli(args + ["--out", "out"]), cwd=tmp_path, capture_output=True, text=True, timeout=120)
+        args = ["-q", "demo", "--frames", "60", "--config", "flush.toml"]
+        args += ["--connect", f"rerun+http://127.0.0.1:{viewer.port}/proxy", "--out", "out"]
+        result = subprocess.run(cli(args), cwd=tmp_path, capture_output=True, text=True, timeout=120)
     finally:
         viewer.close()
     # then the run ends by itself: exit 1, one error line naming the viewer, the other outputs complete
     _no_noise(result)
     assert result.returncode == 1, describe(result)
     errors = [line for line in result.stderr.splitlines() if line.startswith("ar-anchor: error:")]
-    assert len(errors) == 1 and "viewer" in errors[0], describe(result)
+    assert len(errors) == 1 and "viewer" in errors[0] and "within 2 s" in errors[0], describe(result)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["status"] == "failed" and 0 < summary["frames"] <= 60
     rows = (tmp_path / "out" / "poses.csv").read_text().splitlines()
