@@ -8,7 +8,7 @@ import subprocess
 from ar_anchor.cli.report import outputs_line
 from tests.helpers import cli, describe
 
-PARTS_TOML = "[recording]\npart_minutes = 0.02\n"  # a new recording part every 1.2 s (wall or frame time)
+PARTS_TOML = "[recording]\npart_minutes = 0.01\n"  # a new part every 0.6 s of frame (or wall) time: 60 frames, 4+
 
 
 def test_a_split_run_with_exports_lists_every_file_in_its_last_line(tmp_path):

@@ -460,7 +460,9 @@ def test_the_help_says_what_127_0_0_1_lets_in(argv, option):
 
 # ---------------------------------------------------------------------------- view --screenshot
 
-PARTS_TOML = "[recording]\npart_minutes = 0.02\n"  # a new recording part every 1.2 s: a 60-frame demo has several
+# a new recording part every 0.6 s of the frames' own time (or of wall time): a 60-frame demo (2 s at 30 fps) has
+# at least 4 however fast it runs (1.2 s parts made 3 only when the run took 2.4 s of wall time or more)
+PARTS_TOML = "[recording]\npart_minutes = 0.01\n"
 
 
 def test_the_time_cursor_request_says_frame_and_the_state_parser_reads_it_back():
