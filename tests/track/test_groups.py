@@ -19,7 +19,7 @@ from ar_anchor.config import TrackerConfig, parse_config
 from ar_anchor.geometry import Pose, angle_between_deg, look_at, marker_corners_in_marker
 from ar_anchor.targets import TargetId
 from ar_anchor.track.groups import GroupLayout, GroupLearner, members_from_groups
-from ar_anchor.track.groups.evidence import _joint_fit_rms, _refine_lm_rms
+from ar_anchor.track.groups.evidence import _joint_fit_rms, _opencv_joint_fit_rms
 from ar_anchor.track.kernels import compiled_refine
 from ar_anchor.track.pose import BoardPose, MarkerPose, PoseHypothesis, solve_marker
 from ar_anchor.track.tracker import as_member
@@ -423,7 +423,7 @@ def test_the_compiled_joint_fit_reaches_opencvs_fit_from_every_start():
         ]
         # when both refine from each start
         compiled = _joint_fit_rms(points, image, starts, camera)
-        opencv = np.array([_refine_lm_rms(start, points, image, camera) for start in starts])
+        opencv = np.array([_opencv_joint_fit_rms(start, points, image, camera) for start in starts])
         # then they agree wherever OpenCV converges (a fit within 1 px), to well below the 1 px agreement limit
         converged = opencv < 1.0
         assert np.all(np.abs(compiled[converged] - opencv[converged]) < 1e-3), (frame, compiled, opencv)

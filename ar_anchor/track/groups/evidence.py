@@ -204,7 +204,7 @@ def _joint_fit_rms(points: np.ndarray, image: np.ndarray, starts: list[Pose], ca
     OpenCV's where the polish is not compiled (its numpy version is slower still). Both reach the same fit.
     """
     if compiled_refine() is None or distortion12(camera.dist_or_none) is None:
-        return np.array([_refine_lm_rms(start, points, image, camera) for start in starts])
+        return np.array([_opencv_joint_fit_rms(start, points, image, camera) for start in starts])
     count = len(starts)
     rotations = np.stack([start.rotation for start in starts])
     tvecs = np.stack([start.tvec for start in starts])
@@ -213,7 +213,7 @@ def _joint_fit_rms(points: np.ndarray, image: np.ndarray, starts: list[Pose], ca
     return refine_poses(rotations, tvecs, obj, img, camera.camera_matrix, camera.dist_or_none)[2]
 
 
-def _refine_lm_rms(start: Pose, points: np.ndarray, image: np.ndarray, camera: CameraModel) -> float:
+def _opencv_joint_fit_rms(start: Pose, points: np.ndarray, image: np.ndarray, camera: CameraModel) -> float:
     """``solvePnPRefineLM`` from ``start``: the refined pose's RMS reprojection error (inf when it fails)."""
     rvec, tvec = start.rvec.reshape(3, 1).copy(), start.tvec.reshape(3, 1).copy()
     try:
