@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -153,6 +154,33 @@ def test_distorted_cameras_render_unless_the_model_folds_over(k1, renders):
     else:  # r (1 + k1 r^2) peaks below the image corner's radius (0.8): no inverse exists there
         with pytest.raises(SourceError, match="distortion"):
             SyntheticSource(scene)
+
+
+def test_a_cameras_undistortion_maps_are_made_once_and_cannot_be_written():
+    from ar_anchor.camera import CameraModel
+    from ar_anchor.synthetic import pinhole_canvas
+
+    def camera(k1: float) -> CameraModel:
+        return CameraModel(
+            np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.array([k1, 0, 0, 0, 0]), 640, 480
+        )
+
+    # given the same distorted camera twice (two objects), and another
+    pinhole, maps = pinhole_canvas(camera(0.1))
+    again_pinhole, again = pinhole_canvas(camera(0.1))
+    _, other = pinhole_canvas(camera(-0.15))
+    # then the maps are computed once (the same arrays), read-only, and another lens has its own
+    assert again[0] is maps[0] and again[1] is maps[1] and again_pinhole is pinhole
+    assert not maps[0].flags.writeable and not maps[1].flags.writeable
+    with pytest.raises(ValueError):
+        maps[0][0, 0] = 0.0
+    assert not np.array_equal(other[0], maps[0])
+    # and the maps send each output pixel to where the pinhole canvas sees the lens's ray
+    u, v = 600.0, 40.0
+    x, y = (maps[0][int(v), int(u)], maps[1][int(v), int(u)])
+    ray = cv2.undistortPoints(np.array([[[u, v]]]), camera(0.1).camera_matrix, camera(0.1).dist_coeffs).reshape(2)
+    k = pinhole.camera_matrix
+    assert (x, y) == pytest.approx((k[0, 0] * ray[0] + k[0, 2], k[1, 1] * ray[1] + k[1, 2]), abs=1e-3)
 
 
 # ---------------------------------------------------------------------------- hand-held webcam realism

@@ -21,6 +21,7 @@ from ar_anchor.targets import TargetId
 from ar_anchor.track.groups import GroupLayout, GroupLearner, members_from_groups
 from ar_anchor.track.groups.evidence import _joint_fit_rms, _opencv_joint_fit_rms
 from ar_anchor.track.kernels import compiled_refine
+from ar_anchor.track.marker_poses import solve_markers
 from ar_anchor.track.pose import BoardPose, MarkerPose, PoseHypothesis, solve_marker
 from ar_anchor.track.tracker import as_member
 
@@ -53,15 +54,17 @@ def _camera(frame: int, distance: float = 0.6) -> Pose:
 
 
 def _measure(camera_from_marker: dict[int, Pose], rng: np.random.Generator, noise_px: float = 0.3) -> dict:
-    """Each marker's per-frame solution from its projected corners plus noise (both IPPE solutions)."""
-    measured = {}
-    for marker_id, pose in camera_from_marker.items():
+    """Each marker's per-frame solution from its projected corners plus noise (both IPPE solutions), all of a
+    frame's markers in one call, as the tracker solves them."""
+    if not camera_from_marker:
+        return {}
+    ids = np.array(list(camera_from_marker), np.int32)
+    quads = []
+    for pose in camera_from_marker.values():
         corners = CAMERA.project(pose.apply(marker_corners_in_marker(LENGTH)))
-        corners = corners + rng.normal(0.0, noise_px, corners.shape)
-        solved = solve_marker(marker_id, corners, LENGTH, CAMERA)
-        if isinstance(solved, MarkerPose):
-            measured[solved.target] = solved
-    return measured
+        quads.append(corners + rng.normal(0.0, noise_px, corners.shape))
+    solved = solve_markers(ids, np.stack(quads), np.full(len(ids), LENGTH), CAMERA)
+    return {s.target: s for s in solved if isinstance(s, MarkerPose)}
 
 
 def _step(learner: GroupLearner, measured: dict) -> tuple[dict, dict]:
