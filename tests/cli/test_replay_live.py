@@ -620,9 +620,9 @@ def test_sigint_during_live_record_leaves_complete_outputs(tmp_path):
 
 
 def test_a_long_run_is_recorded_in_parts_that_each_verify(tmp_path):
-    # given a live run whose recording is split every 1.2 s (part_minutes 0.02)
-    (tmp_path / "parts.toml").write_text("[recording]\npart_minutes = 0.02\n")
-    args = ["-q", "live", "--device", "synthetic", "--width", "320", "--height", "180", "--max-frames", "120"]
+    # given a live run of 2.5 s whose recording is split every 0.6 s (part_minutes 0.01)
+    (tmp_path / "parts.toml").write_text("[recording]\npart_minutes = 0.01\n")
+    args = ["-q", "live", "--device", "synthetic", "--width", "320", "--height", "180", "--max-frames", "75"]
     result = run_in_process([*args, "--config", "parts.toml", "--out", "out"], tmp_path)
     assert_ran(result)
     # then the recording is recording.rrd, recording.part2.rrd, ... in the summary, each a complete file
