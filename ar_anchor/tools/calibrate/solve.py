@@ -306,6 +306,14 @@ def _parameters(matrix: np.ndarray, dist: np.ndarray, flags: int) -> np.ndarray:
     return values
 
 
+def _start(result: CalibrationResult) -> tuple[np.ndarray, np.ndarray]:
+    """Where each resample's calibration starts: at the calibration itself, not at OpenCV's own guess (the same
+    minimum in fewer iterations; on 12 rendered view sets 14-27 % faster, every deviation the same to 6 digits)."""
+    dist = np.zeros(5)
+    dist[: min(5, result.camera.dist_coeffs.size)] = result.camera.dist_coeffs.reshape(-1)[:5]
+    return np.asarray(result.camera.camera_matrix, np.float64), dist
+
+
 def bootstrap_uncertainty(
     spec: CharucoSpec,
     result: CalibrationResult,
@@ -332,11 +340,7 @@ def bootstrap_uncertainty(
     board = spec.build()
     objects, images = _points(board, views)
     rng = np.random.default_rng(seed)
-    # each resample starts from the calibration itself, not from OpenCV's own guess: the same minimum in fewer
-    # iterations (on 12 rendered view sets: 14-27 % faster, every deviation the same to 6 digits)
-    start_matrix = np.asarray(result.camera.camera_matrix, np.float64)
-    start_dist = np.zeros(5)
-    start_dist[: min(5, result.camera.dist_coeffs.size)] = result.camera.dist_coeffs.reshape(-1)[:5]
+    start_matrix, start_dist = _start(result)
     samples: list[np.ndarray] = []
     ran = failed = 0
     planned = resamples if count >= 3 else 0
