@@ -202,9 +202,7 @@ def _pinhole_canvas(
     # the inversion must round-trip: a model that folds over (e.g. a strongly negative k1 at the
     # image's corners) has pixels no ideal point projects to
     rays = cv2.undistortPoints(ideal, k, np.zeros(5)).reshape(-1, 2)
-    back = cv2.projectPoints(
-        np.column_stack([rays, np.ones(len(rays))]), np.zeros(3), np.zeros(3), k, camera.dist_coeffs
-    )[0]
+    back = camera.project_rays(rays)
     ideal = ideal.reshape(height, width, 2)
     if not (np.all(np.isfinite(back)) and np.abs(back.reshape(-1, 2) - pixels.reshape(-1, 2)).max() < 0.01):
         raise SourceError("synthetic source: the camera's distortion model cannot be inverted over the whole image")

@@ -397,6 +397,18 @@ def camera_logs(caplog, monkeypatch):
     return caplog
 
 
+@pytest.mark.parametrize("n_dist", [4, 5, 8, 12, 14])
+def test_project_rays_is_project_of_the_rays_at_depth_one(n_dist):
+    # given a camera with a skew entry (OpenCV ignores it) and each distortion model, the tilted sensor included
+    rng = np.random.default_rng(n_dist)
+    k = np.array([[900.0, 0.5, 640.0], [0.0, 880.0, 360.0], [0.0, 0.0, 1.0]])
+    camera = CameraModel(k, rng.normal(0.0, 0.02, n_dist), 1280, 720)
+    rays = rng.uniform(-0.7, 0.7, (5000, 2))
+    # then the rays' pixels are OpenCV's projection of (x, y, 1)
+    expected = camera.project(np.column_stack([rays, np.ones(len(rays))]))
+    assert np.abs(camera.project_rays(rays) - expected).max() < 1e-9
+
+
 def test_scaled_to_half_resolution_uses_pixel_centre_convention(camera_logs):
     # given a 1280x720 camera with an off-centre principal point and distortion
     matrix = np.array([[1000.0, 0.0, 600.25], [0.0, 990.0, 340.75], [0.0, 0.0, 1.0]])
