@@ -133,15 +133,15 @@ def test_rss_growth_is_the_peak_after_the_warmup_minus_the_size_at_its_end():
 
 
 @pytest.mark.slow
-def test_bench_offline_on_a_three_second_clip_writes_both_modes(tmp_path, monkeypatch, capsys):
+def test_bench_offline_on_a_two_second_clip_writes_both_modes(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("AR_ANCHOR_REALDATA", str(tmp_path / "no-realdata"))
     out = tmp_path / "results"
-    assert main(["-q", "bench", "offline", "--quick", "--minutes", "0.05", "--out", str(out)]) == 0
+    assert main(["-q", "bench", "offline", "--quick", "--minutes", "0.03", "--out", str(out)]) == 0
     results = json.loads((out / "offline.json").read_text())
     long = results["long"]
-    assert long["frames"] == 90 and long["runs"] == 1
+    assert long["frames"] == 54 and long["runs"] == 1
     causal, offline = long["causal"]["runs"][0], long["offline"]["runs"][0]
-    assert causal["frames"] == offline["frames"] == 90
+    assert causal["frames"] == offline["frames"] == 54
     assert causal["offline"] is None and causal["causal_states"] is None
     assert offline["offline"]["done"] == ["track", "decide", "write"] and offline["offline"]["spool_mb"] >= 0
     assert sum(offline["causal_states"].values()) == sum(offline["states"].values()) == sum(causal["states"].values())
@@ -150,7 +150,7 @@ def test_bench_offline_on_a_three_second_clip_writes_both_modes(tmp_path, monkey
     assert causal["recording_mb"] > 0 and offline["recording_mb"] > 0
     assert "skipped" in results["chessboard"] and results["verdicts"]["chessboard"] is None
     text = (out / "offline.md").read_text()
-    assert "ar-anchor bench offline --quick --minutes 0.05" in text
+    assert "ar-anchor bench offline --quick --minutes 0.03" in text
     assert "| | causal (`--causal`) | offline (default) |" in text and "Note: chessboard clip skipped" in text
 
 
