@@ -21,7 +21,8 @@ from ...camera import CameraModel
 from ...config import DetectorConfig
 from ...errors import CameraError, SourceError, printable
 from ...track.detection import Detector
-from ...track.pose import MarkerPose, solve_marker
+from ...track.marker_poses import solve_markers
+from ...track.pose import MarkerPose
 from .model import FrameObservations
 
 __all__ = ["Observed", "Progress", "observe_sources"]
@@ -117,16 +118,19 @@ def _observe(
     index: int,
     observed: Observed,
 ) -> FrameObservations | None:
-    """One frame's markers with their IPPE solutions; None when fewer than two have a pose."""
+    """One frame's markers with their IPPE solutions (all solved in one call, as the tracker solves them); None
+    when fewer than two have a pose."""
     detections = detector.detect(image, camera)
     if len(detections) == 0:
         return None
     observed.frames_with_markers += 1
     observed.detections += len(detections)
     ids, corners, hypotheses, ambiguity = [], [], [], []
-    for marker_id, marker_corners in zip(detections.ids.tolist(), detections.corners):
+    lengths = np.full(len(detections), length_m)
+    for marker_id, marker_corners, solved in zip(
+        detections.ids.tolist(), detections.corners, solve_markers(detections.ids, detections.corners, lengths, camera)
+    ):
         observed.markers_seen[int(marker_id)] += 1
-        solved = solve_marker(int(marker_id), marker_corners, length_m, camera)
         if not isinstance(solved, MarkerPose):
             observed.pose_failures += 1
             continue

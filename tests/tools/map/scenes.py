@@ -11,7 +11,8 @@ import numpy as np
 from ar_anchor.camera import CameraModel
 from ar_anchor.geometry import Pose, look_at, marker_corners_in_marker
 from ar_anchor.tools.map import FrameObservations
-from ar_anchor.track.pose import MarkerPose, solve_marker
+from ar_anchor.track.marker_poses import solve_markers
+from ar_anchor.track.pose import MarkerPose
 
 # a 640x480 webcam with barrel distortion (the chessboard video's camera is stronger still)
 WEBCAM = CameraModel(
@@ -68,6 +69,7 @@ def observe(
     frames = []
     for index, camera_from_world in enumerate(cameras):
         ids, corners, hypotheses, ambiguity = [], [], [], []
+        seen, quads = [], []  # the markers fully in the image and their noisy corners: solved in one call
         for marker_id, world_from_marker in markers.items():
             world = world_from_marker.apply(marker_corners_in_marker(length_m))
             if np.any(camera_from_world.apply(world)[:, 2] < 0.05):
@@ -78,8 +80,12 @@ def observe(
             pixels = pixels.reshape(4, 2)
             if np.any(pixels < 2) or np.any(pixels > np.array(camera.size) - 3):
                 continue
-            pixels = pixels + rng.normal(0.0, noise_px, (4, 2))
-            solved = solve_marker(marker_id, pixels, length_m, camera)
+            seen.append(marker_id)
+            quads.append(pixels + rng.normal(0.0, noise_px, (4, 2)))
+        solved_all = (
+            solve_markers(np.array(seen), np.array(quads), np.full(len(seen), length_m), camera) if seen else []
+        )
+        for marker_id, pixels, solved in zip(seen, quads, solved_all):
             if isinstance(solved, MarkerPose):
                 ids.append(marker_id)
                 corners.append(pixels)
