@@ -512,12 +512,15 @@ def test_ray_init_that_fails_is_one_line(media, tmp_path, monkeypatch):
 
 
 def test_sigterm_while_joining_a_cluster_ends_the_batch_at_once(media, tmp_path):
-    # given a batch whose ray.init never returns (a stand-in ray module), joining a listening address
+    # given a batch whose ray.init never returns (a stand-in ray module, which says when it is entered), joining
+    # a listening address
     fake = tmp_path / "fake"
     fake.mkdir()
+    entered = tmp_path / "init-entered"
     (fake / "ray.py").write_text(
-        "import time\ndef is_initialized():\n    return False\n"
-        "def init(**kwargs):\n    time.sleep(600)\ndef shutdown(*a, **k):\n    pass\n"
+        "import pathlib, time\ndef is_initialized():\n    return False\n"
+        f"def init(**kwargs):\n    pathlib.Path({str(entered)!r}).touch()\n    time.sleep(600)\n"
+        "def shutdown(*a, **k):\n    pass\n"
     )
     with socket.create_server(("127.0.0.1", 0)) as server:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(fake), str(Path(__file__).resolve().parents[2])])}
@@ -526,7 +529,11 @@ def test_sigterm_while_joining_a_cluster_ends_the_batch_at_once(media, tmp_path)
              "--out", str(tmp_path / "out"), "--ray", f"127.0.0.1:{server.getsockname()[1]}"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
         )  # fmt: skip
-        time.sleep(3)
+        deadline = time.monotonic() + 60
+        while not entered.exists() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert entered.exists(), process.communicate(timeout=30)[1]
+        time.sleep(0.2)  # (inside the never-ending join)
         # when
         sent = time.monotonic()
         process.send_signal(signal.SIGTERM)
