@@ -9,7 +9,9 @@ documented longer run (docs/fault-campaign.md).
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
+import functools
 import io
 import logging
 import math
@@ -33,6 +35,14 @@ from ar_anchor.synthetic import PlacedMarker, SyntheticScene
 
 PROFILE = os.environ.get("HYPOTHESIS_PROFILE", "ci")
 SCALE = int(os.environ.get("FUZZ_SCALE", "20")) if PROFILE == "long" else 1
+
+
+@functools.cache
+def parsed_module(path: Path) -> ast.Module:
+    """The syntax tree of a source file, parsed once per test process (the structure tests of tests/test_layers.py
+    and tests/test_rooms.py each read every module of the package: six parses of each, 7 s of CPU, before)."""
+    return ast.parse(path.read_text(), filename=str(path))
+
 
 # Exit codes of ar_anchor.cli.main (docs/troubleshooting.md)
 EXIT_CODES = {0, 1, 2, 130}

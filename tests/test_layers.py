@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import parsed_module
+
 PACKAGE = Path(__file__).resolve().parents[1] / "ar_anchor"
 
 LAYER = {
@@ -50,7 +52,7 @@ def _imports(path: Path) -> list[tuple[int, str]]:
     package = parts if parts[-1] == "__init__" else parts[:-1]
     package = [p for p in package if p != "__init__"]
     found = []
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(parsed_module(path)):
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package[: len(package) - node.level + 1]
@@ -87,7 +89,7 @@ def test_imports_go_down(path):
 def test_rerun_is_imported_only_by_viz():
     offenders = []
     for path in _modules():
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in ast.walk(parsed_module(path)):
             names = (
                 [a.name for a in node.names]
                 if isinstance(node, ast.Import)
@@ -101,7 +103,7 @@ def test_rerun_is_imported_only_by_viz():
 
 
 def test_every_module_says_what_lives_there():
-    missing = [str(p.relative_to(PACKAGE)) for p in _modules() if not ast.get_docstring(ast.parse(p.read_text()))]
+    missing = [str(p.relative_to(PACKAGE)) for p in _modules() if not ast.get_docstring(parsed_module(p))]
     assert not missing, f"modules without a docstring: {missing}"
 
 
@@ -118,7 +120,7 @@ def test_every_public_name_says_what_it_does():
     missing = []
     for path in sorted(PACKAGE.rglob("*.py")):
         where = path.relative_to(PACKAGE)
-        for node in ast.parse(path.read_text()).body:
+        for node in parsed_module(path).body:
             if not isinstance(node, (*functions, ast.ClassDef)) or node.name.startswith("_"):
                 continue
             if not (isinstance(node, functions) and _is_overload(node)) and not ast.get_docstring(node):

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import parsed_module
+
 PACKAGE = Path(__file__).resolve().parents[1] / "ar_anchor"
 MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 80
@@ -30,7 +32,7 @@ def _imported(path: Path, known: set[str]) -> set[str]:
     module; ``from . import y`` is module ``y``, or the package itself where ``y`` is a name it defines."""
     package = _name(path).split(".") if path.name == "__init__.py" else _name(path).split(".")[:-1]
     found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(parsed_module(path)):
         if isinstance(node, ast.Import):
             found |= {a.name for a in node.names if a.name in known}
         elif isinstance(node, ast.ImportFrom):
@@ -108,7 +110,7 @@ def test_modules_and_functions_stay_small(path):
     assert source.count("\n") <= MAX_MODULE_LINES, f"{path.name}: {source.count(chr(10))} lines"
     long = [
         f"{node.name} (line {node.lineno}): {node.end_lineno - node.lineno + 1} lines"
-        for node in ast.walk(ast.parse(source))
+        for node in ast.walk(parsed_module(path))
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
         and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES
     ]
