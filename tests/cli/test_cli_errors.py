@@ -1,7 +1,11 @@
-"""End-to-end ``ar-anchor`` error behaviour, run as real subprocesses (real exit codes and stderr).
+"""End-to-end ``ar-anchor`` error behaviour: exit codes and stderr.
 
 Bad input is exit code 2 with a message and no traceback; a bad file is exactly one stderr line
 naming that file; nothing is written for a run that never started.
+
+Each case runs the command's ``main`` in-process (a real process costs ~0.2 s of start-up for a line of
+argparse); :func:`test_a_real_process_says_what_main_says` runs a sample of them as real ``python -m ar_anchor``
+processes and checks they give the same exit code and the same stderr, and the demo runs as a real process.
 """
 
 from __future__ import annotations
@@ -13,6 +17,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from tests.helpers import run_main
 
 pytestmark = pytest.mark.slow
 
@@ -35,15 +41,19 @@ _CAMERA_NEGATIVE_F = (
 )
 
 
-def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "ar_anchor", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        check=False,
-    )
+def run_cli(args: list[str], cwd: Path, *, real_process: bool = False) -> subprocess.CompletedProcess[str]:
+    """``ar-anchor ARGS`` in ``cwd``: its ``main`` in this process, or (``real_process``) a new Python process."""
+    if real_process:
+        return subprocess.run(
+            [sys.executable, "-m", "ar_anchor", *args],
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+            timeout=TIMEOUT_S,
+            check=False,
+        )
+    result = run_main(args, cwd)
+    return subprocess.CompletedProcess(args, result.code, result.stdout, result.stderr)
 
 
 def assert_usage_error(result: subprocess.CompletedProcess[str]) -> None:
@@ -159,6 +169,26 @@ def test_far_below_near_is_exit_2_one_line(tmp_path):
     assert "--far" in result.stderr and "--near" in result.stderr
 
 
+# a bad file, a bad option, a bad pair of values, an unknown command
+REAL_PROCESS_SAMPLE = [
+    ["--quiet", "demo", "--frames", "2", "--camera", "no_such_camera.yml", "--out", "run"],
+    ["demo", "--framez", "3", "--out", "run"],
+    ["--quiet", "demo", "--frames", "2", "--near", "2", "--far", "1", "--out", "run"],
+    ["demoo"],
+]
+
+
+def test_a_real_process_says_what_main_says(tmp_path):
+    for argv in REAL_PROCESS_SAMPLE:
+        # when the same bad command line is given to a real process and to main in-process
+        real = run_cli(argv, tmp_path, real_process=True)
+        in_process = run_cli(argv, tmp_path)
+        # then both end with exit 2 and the same stderr, and neither ran
+        assert real.returncode == in_process.returncode == 2, (argv, real, in_process)
+        assert real.stderr == in_process.stderr and real.stdout == in_process.stdout, (argv, real, in_process)
+        assert "Traceback" not in real.stderr and not (tmp_path / "run").exists()
+
+
 # ============================================================================ happy path
 
 
@@ -173,7 +203,7 @@ def test_demo_writes_csv_summary_and_valid_recording(tmp_path, argv):
     # given an output directory that does not exist yet
     out = tmp_path / "run"
     # when a short demo runs
-    result = run_cli([*argv, "--out", str(out)], tmp_path)
+    result = run_cli([*argv, "--out", str(out)], tmp_path, real_process=True)
     # then it succeeds quietly and writes the three outputs
     assert result.returncode == 0, result.stderr
     assert "Traceback" not in result.stderr
