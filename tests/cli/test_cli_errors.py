@@ -178,7 +178,8 @@ REAL_PROCESS_SAMPLE = [
 ]
 
 
-def test_a_real_process_says_what_main_says(tmp_path):
+def test_a_real_process_says_what_main_says(tmp_path, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "80")  # argparse wraps its usage lines to the terminal's width: one width for both
     for argv in REAL_PROCESS_SAMPLE:
         # when the same bad command line is given to a real process and to main in-process
         real = run_cli(argv, tmp_path, real_process=True)
