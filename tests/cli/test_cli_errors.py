@@ -13,21 +13,15 @@ from __future__ import annotations
 import csv
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from tests.helpers import run_main
+from tests.helpers import POSES_HEADER, cli, run_main, verify_rrd
 
 pytestmark = pytest.mark.slow
 
 TIMEOUT_S = 60
-POSES_HEADER = (
-    "frame,timestamp_s,target,state,rvec_x,rvec_y,rvec_z,tvec_x,tvec_y,tvec_z,"
-    "raw_rvec_x,raw_rvec_y,raw_rvec_z,raw_tvec_x,raw_tvec_y,raw_tvec_z,reproj_px,ambiguity"
-)
-RERUN = Path(sys.executable).with_name("rerun")
 
 _K_OK = "500., 0., 319.5, 0., 500., 239.5, 0., 0., 1."
 _CAMERA_WRONG_SHAPE = (
@@ -45,7 +39,7 @@ def run_cli(args: list[str], cwd: Path, *, real_process: bool = False) -> subpro
     """``ar-anchor ARGS`` in ``cwd``: its ``main`` in this process, or (``real_process``) a new Python process."""
     if real_process:
         return subprocess.run(
-            [sys.executable, "-m", "ar_anchor", *args],
+            cli(args),
             cwd=cwd,
             capture_output=True,
             text=True,
@@ -221,11 +215,4 @@ def test_demo_writes_csv_summary_and_valid_recording(tmp_path, argv):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 5
 
-    rrd = out / "recording.rrd"
-    assert rrd.stat().st_size > 0
-    if not RERUN.exists():
-        pytest.skip(f"{RERUN} not found: recording.rrd not verified")
-    verify = subprocess.run(
-        [str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=TIMEOUT_S, check=False
-    )
-    assert verify.returncode == 0, verify.stdout + verify.stderr
+    verify_rrd(out / "recording.rrd")
