@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, printable
+from ..targets import TrackState
 
 PLAIN_EVERY_S = 5.0  # a piped run's progress: a plain line this often (seconds)
 
@@ -271,17 +272,22 @@ def format_where(summary: dict[str, Any]) -> list[str]:
     return lines
 
 
+_MEASURED_STATES = frozenset(str(state) for state in TrackState if state.measured)  # tracked, ambiguous
+
+
 def _folded_members(targets: dict[str, Any]) -> dict[str, str]:
     """The markers folded under a board in the table: marker -> board, for every marker drawn as part of one
-    board (summary.json's ``member_of``) in each of its frames, when that board has a row. (Their own rows
-    stay in poses.csv and summary.json; a marker also seen on its own, or in two boards, keeps its row.)"""
+    board (summary.json's ``member_of``) in each frame it was measured in, when that board has a row. Its gap
+    rows (``predicted``, ``interpolated``: not seen that frame) do not count. (Their own rows stay in poses.csv
+    and summary.json; a marker also seen on its own, or in two boards, keeps its row.)"""
     folded = {}
     for name, entry in targets.items():
         member_of = entry.get("member_of") or {}
-        rows = sum(entry.get("states", {}).values())
+        states = entry.get("states", {})
+        measured = sum(count for state, count in states.items() if state in _MEASURED_STATES)
         if len(member_of) == 1:
             board, frames = next(iter(member_of.items()))
-            if frames == rows and board in targets:
+            if frames == measured and board in targets:
                 folded[name] = board
     return folded
 

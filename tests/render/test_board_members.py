@@ -145,6 +145,31 @@ def test_a_marker_also_seen_on_its_own_keeps_its_row():
     assert "board:desk (1 marker)" in table and "marker:10 " in table and "marker:11 " not in table
 
 
+def test_a_member_with_gap_rows_is_still_folded_under_its_board():
+    """Found by trying an offline replay of a mapped sheet: a member with an interpolated frame (not seen then,
+    so not drawn as part of the board) was listed beside the board as if it were a marker on its own."""
+    board = {"frames_measured": 3, "states": {"tracked": 3}, "detection_rate": 1.0}
+    gaps = {"frames_measured": 2, "detection_rate": 2 / 3, "member_of": {"board:desk": 2}}
+    summary = {
+        "frames": 3,
+        "frames_with_markers": 3,
+        "frames_with_pose": 3,
+        "wall_time_s": 1.0,
+        "fps": 3.0,
+        "targets": {
+            "board:desk": board,
+            # a member in both frames it was seen in, bridged in the third (offline) or predicted through it
+            "marker:10": {**gaps, "states": {"tracked": 2, "interpolated": 1}},
+            "marker:11": {**gaps, "states": {"tracked": 1, "ambiguous": 1, "predicted": 1}},
+            # seen in three frames, a member in two: on its own in one
+            "marker:12": {**gaps, "frames_measured": 3, "states": {"tracked": 3}},
+        },
+    }
+    table = format_summary(summary)
+    assert "board:desk (2 markers)" in table, table
+    assert "marker:10 " not in table and "marker:11 " not in table and "marker:12 " in table, table
+
+
 def test_board_members_are_the_markers_the_board_was_solved_from(stills):
     _, result = stills[0]
     board = result.targets[TargetId.board("desk")]
