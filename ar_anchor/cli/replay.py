@@ -160,8 +160,21 @@ def _images_out(args: argparse.Namespace, source: Any) -> StillsPlan | None:
 def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
     """Are the source's frames independent stills (an image folder or glob, without ``--sequence`` or
     ``--fps``)? Says which was assumed, in one line (unless ``-q``; summary.json's ``decided_with`` says it
-    too)."""
+    too). A video given ``--fps`` or ``--sequence`` (options of image sources) is warned that they are ignored."""
     if not info.stills:
+        ignored = [
+            name
+            for name, given in (("--fps", args.fps is not None), ("--sequence", getattr(args, "sequence", False)))
+            if given
+        ]
+        if ignored:
+            log.warning(
+                "%s: ignored, %s is a video (its frames are a sequence, timed by the video itself); %s only for "
+                "image folders and globs",
+                " and ".join(ignored),
+                printable(args.source),
+                "they are" if len(ignored) > 1 else "it is",
+            )
         return False
     sequence = getattr(args, "sequence", False) or args.fps is not None
     count = f"{info.frame_count} image(s)" if info.frame_count is not None else "the images"

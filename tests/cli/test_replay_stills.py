@@ -87,19 +87,42 @@ def test_a_later_video_replay_into_the_same_folder_leaves_no_stale_frames_csv(ph
     """frames.csv belongs to its run: a video replayed into the same --out removes it with the other files."""
     _, out, _ = _replay(photos, "reused")
     assert (out / "frames.csv").is_file()
+    video = _video_of(photos, tmp_path / "clip.avi")
+    result = run_main(
+        ["-q", "replay", str(video), "--camera", str(photos / "cam.yml"), "--marker-length", "0.06", "--out", str(out)]
+    )
+    assert_clean_exit(result, {0})
+    assert not (out / "frames.csv").exists()
+
+
+def _video_of(photos: Path, video: Path) -> Path:
+    """The photos as the frames of an MJPG video at 30 fps."""
     images = [cv2.imread(str(path)) for path in sorted((photos / "shots").iterdir())]
-    video = tmp_path / "clip.avi"
     writer = cv2.VideoWriter(
         str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (images[0].shape[1], images[0].shape[0])
     )
     for image in images:
         writer.write(image)
     writer.release()
-    result = run_main(
-        ["-q", "replay", str(video), "--camera", str(photos / "cam.yml"), "--marker-length", "0.06", "--out", str(out)]
-    )
+    return video
+
+
+def test_a_video_given_the_image_options_says_they_are_ignored(photos: Path, tmp_path: Path) -> None:
+    """Found by trying the tool as a new user: --fps 10 on a video ran at the video's own 30 fps, without a word."""
+    video = _video_of(photos, tmp_path / "clip.avi")
+    out = tmp_path / "out"
+    argv = ["replay", str(video), "--camera", str(photos / "cam.yml"), "--marker-length", "0.06", "--out", str(out)]
+    result = run_main(["-q", *argv, "--fps", "10", "--sequence"])
     assert_clean_exit(result, {0})
-    assert not (out / "frames.csv").exists()
+    warned = [line for line in result.stderr.splitlines() if "ignored" in line]
+    assert len(warned) == 1 and "--fps and --sequence" in warned[0] and "clip.avi is a video" in warned[0], result
+    with open(out / "poses.csv", newline="") as file:  # the video's own timing
+        times = sorted({float(row["timestamp_s"]) for row in csv.DictReader(file)})
+    assert times[1] - times[0] == pytest.approx(1 / 30, rel=1e-3)
+    # and without them, nothing is said
+    plain = run_main(["-q", *argv[:-1], str(tmp_path / "plain")])
+    assert_clean_exit(plain, {0})
+    assert "ignored" not in plain.stderr
 
 
 @pytest.mark.parametrize("option", [("--sequence",), ("--fps", "10")])
