@@ -108,9 +108,9 @@ def interrupted_outputs(err: BaseException) -> str:
     incomplete = getattr(err, "incomplete", None)
     out_dir = getattr(err, "out_dir", None)
     where = f" in {printable(out_dir)}/" if out_dir is not None else ""
-    note = getattr(err, "note", None)
+    note = getattr(err, "note", None)  # what the run says its outputs are (the run loop's offline replay)
     if note and not incomplete:
-        return f"{note} (complete{where})"
+        return note
     if incomplete:
         return f"closing cut short: {', '.join(incomplete)} may be incomplete; the other outputs{where} are complete"
     return f"outputs written so far{where} are complete"

@@ -124,8 +124,9 @@ def run_session(
         if offline is not None and "writing" not in passes:
             done = passes.get("done") or ["none"]
             err.note = (  # type: ignore[attr-defined]
-                f"the offline replay was interrupted before writing (passes done: {', '.join(done)}): the outputs "
-                "are empty; replay --causal writes as it goes"
+                f"the offline replay was interrupted before writing (passes done: {', '.join(done)}): the outputs in "
+                f"{printable(outputs.out_dir)}/ are complete but hold no frames (replay --causal writes each frame "
+                "as it goes)"
             )
         raise
     except BaseException:

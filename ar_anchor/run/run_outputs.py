@@ -331,7 +331,7 @@ class RunOutputs:
         run ended), the options' ``extra_summary``, what the outputs counted, then ``extras``."""
         options = self._options
         counts = dict(options.extra_summary)
-        if options.video_out is not None:
+        if options.video_out is not None and self._video_frames:  # (opened at its first frame: none, no file)
             counts["video_out"] = {"path": str(options.video_out), "frames": self._video_frames}
         if options.images_out is not None:
             counts["images_out"] = {"folder": str(options.images_out.folder), "images": self._stills_written}

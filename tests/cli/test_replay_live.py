@@ -504,6 +504,7 @@ def test_sigint_before_an_offline_replay_writes_leaves_empty_complete_outputs_an
     folder = long_folder(tmp_path, sequence, 1500)
     out = tmp_path / "out"
     argv = ["replay", str(folder), "--camera", str(sequence.camera_yml), "--out", str(out), "--sequence"]
+    argv += ["--video-out", "annotated.mp4"]
     process = subprocess.Popen(cli(argv), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         # when it is interrupted during its first pass (the summary says the run is going, nothing written)
@@ -524,8 +525,11 @@ def test_sigint_before_an_offline_replay_writes_leaves_empty_complete_outputs_an
     assert "Traceback" not in stderr
     last = stderr.strip().splitlines()[-1]
     assert last.startswith("ar-anchor: interrupted;") and "interrupted before writing" in last and "--causal" in last
+    assert f"outputs in {out}/ are complete but hold no frames" in last, last
     summary = read_summary(out)
     assert summary["status"] == "interrupted" and summary["frames"] == 0
+    # (the annotated video is opened at its first frame: none written, and the summary names no such file)
+    assert not (tmp_path / "annotated.mp4").exists() and "video_out" not in summary, summary
     assert summary["offline"]["done"] in ([], ["track"], ["track", "decide"])
     assert (out / "poses.csv").read_text().splitlines() == [POSES_HEADER]
     verify_rrd(out / "recording.rrd")
