@@ -174,7 +174,7 @@ def write_runs(out: Path, rows: list[dict[str, Any]]) -> Path:
 
 def format_runs(rows: list[dict[str, Any]], out: Path) -> str:
     """The batch's table on the console: one line per recording (name, frames, status, frames with markers,
-    speed, wall time, output folder), its columns explained below it."""
+    speed, wall time, output folder: ``-`` where none was made), its columns explained below it."""
 
     def cell(value: Any, form: str) -> str:
         return "-" if value is None else format(value, form)
@@ -188,6 +188,8 @@ def format_runs(rows: list[dict[str, Any]], out: Path) -> str:
         folder = Path(row.get("out") or out / row["name"])
         here = Path.cwd()
         shown = f"{printable(folder.relative_to(here) if _inside(folder, here) else folder)}/"
+        if not folder.is_dir():  # (a recording that failed before its run began: nothing written)
+            shown = "-"
         lines.append(
             f"{printable(row['name']):<{width}} {cell(frames, 'd'):>7} {printable(row['status']):<11} {found:<12} "
             f"{cell(row.get('fps'), '.1f'):>7} {cell(row.get('wall_s'), '.1f'):>7}  {shown}"

@@ -49,12 +49,15 @@ def test_batch_prints_one_line_per_recording(tmp_path: Path) -> None:
     result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 1, describe(result)
     # then the console has a line per recording: frames, status, markers found in N of M, speed, folder
-    rows = {line.split()[0]: line.split() for line in result.stdout.splitlines() if line.endswith("/")}
+    names = ("seen", "partly", "broken")
+    rows = {line.split()[0]: line.split() for line in result.stdout.splitlines() if line.startswith(names)}
     assert set(rows) == {"seen", "partly", "broken"}, result.stdout
     assert rows["seen"][1:5] == ["3", "ok", "3", "of"] and rows["seen"][5] == "3"
     assert rows["partly"][1:6] == ["2", "ok", "1", "of", "2"]
     assert rows["broken"][1:3] == ["-", "failed"]
     assert rows["seen"][-1] == "out/seen/"
+    # (the broken video failed before its run began: no folder, and the table names none)
+    assert rows["broken"][-1] == "-" and not (tmp_path / "out" / "broken").exists(), result.stdout
     summary = json.loads((tmp_path / "out" / "seen" / "summary.json").read_text())
     assert float(rows["seen"][6]) == round(summary["fps"], 1)
     assert "markers in: frames with markers found" in result.stdout
