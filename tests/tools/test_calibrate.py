@@ -294,6 +294,21 @@ def test_cli_writes_a_camera_file_and_a_recording(views_dir, tmp_path):
     assert verify.returncode == 0, verify.stderr
 
 
+def test_each_quality_warning_is_said_once(views_dir, tmp_path):
+    """Found by trying the tool as a new user: every warning was printed twice, logged and again in the report."""
+    folder = copy_views(views_dir, tmp_path / "shots", 4)
+    args = [str(folder), *BOARD_ARGS, "--min-views", "4"]
+    result = run_cli([*args, "--out", "calib/camera.yml"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    warned = [line.removeprefix("warning: ") for line in result.stdout.splitlines() if line.startswith("warning: ")]
+    assert warned and "uncertainty (+-) is itself unreliable" in " ".join(warned), result.stdout
+    assert not any(warning in result.stderr for warning in warned), result.stderr
+    # with -q (no report) they are said on stderr, once each
+    quiet = run_main(["-q", "calibrate", *args, "--out", "calib/quiet.yml"], tmp_path)
+    assert quiet.code == 0, quiet.describe()
+    assert all(quiet.stderr.count(warning) == 1 for warning in warned), quiet.stderr
+
+
 @pytest.mark.slow
 def test_progress_ends_at_the_count_the_summary_gives(views_dir, tmp_path):
     # given 8 views as image files, and as a video showing each of them for 3 frames

@@ -215,9 +215,10 @@ def _calibrate(args: argparse.Namespace, spec: CharucoSpec, source: str, out: Pa
         succeeded = True
     finally:
         recording.close(keep=succeeded)
-    for warning in report.warnings:
-        log.warning("%s", warning)
-    if not quiet:
+    if quiet:  # (otherwise the report ends with them: said once)
+        for warning in report.warnings:
+            log.warning("%s", warning)
+    else:
         print(format_report(report))
     k = report.camera.camera_matrix
     print(
