@@ -107,6 +107,18 @@ def _decoder_quiet(path: Path) -> Iterator[list[str]]:
         cv2.utils.logging.setLogLevel(previous)
 
 
+def _other_files(others: list[Path]) -> str:
+    """The hint for a folder with no images but other files (a video in a folder, most likely): what they are
+    and how a video is given."""
+    if not others:
+        return ""
+    named = ", ".join(printable(p.name) for p in others[:2]) + (", ..." if len(others) > 2 else "")
+    return (
+        f"; it holds {len(others)} other file(s) ({named}): a video is given as the file itself "
+        f"(replay {printable(others[0])}), a folder of videos to `ar-anchor batch`"
+    )
+
+
 class ImageFolderSource(ClosingSource):
     """Images of a folder (or matching a glob), in natural order, at a nominal frame rate.
 
@@ -127,12 +139,13 @@ class ImageFolderSource(ClosingSource):
         self._single = False  # one image named, not a folder or a glob: its error is its own
         self.spec = os.fspath(spec)
         path = Path(self.spec)
+        others: list[Path] = []  # a folder's files that are not images
         if path.is_dir():
             entries = [p for p in path.iterdir() if p.is_file()]
             files = [p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS]
-            ignored = len(entries) - len(files)
-            if ignored:
-                log.info("%s: ignoring %d non-image file(s)", path, ignored)
+            others = sorted((p for p in entries if p.suffix.lower() not in IMAGE_EXTENSIONS), key=natural_key)
+            if others:
+                log.info("%s: ignoring %d non-image file(s)", path, len(others))
             where = f"folder {path}"
         elif _GLOB_CHARS.search(self.spec):
             files = [Path(p) for p in glob.glob(self.spec) if Path(p).is_file()]
@@ -146,7 +159,7 @@ class ImageFolderSource(ClosingSource):
         else:
             raise SourceError(f"{printable(self.spec)}: not found")
         if not files:
-            raise SourceError(f"{where}: no images ({', '.join(sorted(IMAGE_EXTENSIONS))})")
+            raise SourceError(f"{where}: no images ({', '.join(sorted(IMAGE_EXTENSIONS))}){_other_files(others)}")
         self.files = sorted(files, key=natural_key)
         self.skipped = 0
         self._headers: dict[Path, tuple[int, int] | None] = {p: image_size(p) for p in self.files[:_SIZE_SAMPLE]}

@@ -103,6 +103,22 @@ def test_image_folder_errors_name_the_folder(tmp_path, setup, message):
     assert str(tmp_path) in str(info.value)
 
 
+def test_a_folder_holding_a_video_says_how_a_video_is_given(tmp_path):
+    """Found by trying the tool as a new user: ``replay vids`` (a folder holding a video) said only "no images"."""
+    (tmp_path / "vids").mkdir()
+    (tmp_path / "vids" / "clip.avi").write_bytes(b"RIFF")
+    with pytest.raises(SourceError, match="no images") as info:
+        ImageFolderSource(tmp_path / "vids")
+    given = f"replay {tmp_path / 'vids' / 'clip.avi'}"
+    assert f"1 other file(s) (clip.avi): a video is given as the file itself ({given})" in str(info.value)
+    assert "a folder of videos to `ar-anchor batch`" in str(info.value)
+    # an empty folder: no other file to speak of
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SourceError, match="no images") as empty:
+        ImageFolderSource(tmp_path / "empty")
+    assert "other file" not in str(empty.value)
+
+
 def write_video(path, frames, fourcc="FFV1", fps=30.0):
     height, width = frames[0].shape[:2]
     writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*fourcc), fps, (width, height))
