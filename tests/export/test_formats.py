@@ -4,6 +4,7 @@ text, and poses_ext.csv / tum/ written from a poses.csv made here from known pos
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import cv2
@@ -198,6 +199,30 @@ def test_poses_ext_agrees_with_poses_csv(tmp_path):
     export_run(run.path, formats=("csv",))
     # then every row has the same frame, time, target and state, and the same pose as quaternion and as matrix
     assert check_poses_ext(run.path) == len(run.rows)
+
+
+def test_the_export_of_a_run_that_did_not_complete_or_holds_no_pose_says_so(tmp_path, caplog):
+    """Found by trying the tool as a new user: the export of an interrupted run with no pose said nothing."""
+    run = write_run(tmp_path / "run")
+    summary = json.loads((run.path / "summary.json").read_text())
+
+    def warnings(status: str, *, empty: bool = False) -> list[str]:
+        (run.path / "summary.json").write_text(json.dumps({**summary, "status": status}))
+        if empty:
+            lines = (run.path / "poses.csv").read_text().splitlines(keepends=True)
+            (run.path / "poses.csv").write_text(lines[0])
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="ar_anchor"):
+            export_run(run.path, tmp_path / f"out_{status}_{empty}", formats=("csv",))
+        return [record.getMessage() for record in caplog.records if record.levelno >= logging.WARNING]
+
+    assert warnings("completed") == []
+    (interrupted,) = warnings("interrupted")
+    assert "the run was interrupted (its summary.json): the exports hold the 7 pose(s) it wrote" in interrupted
+    assert "the run did not finish" in warnings("running")[0] and "the run failed" in warnings("failed")[0]
+    assert warnings("completed", empty=True) == [
+        f"RUN_DIR {run.path}: its poses.csv holds no pose: the exports are empty"
+    ]
 
 
 def test_tum_files_hold_the_camera_in_each_target_frame(tmp_path):

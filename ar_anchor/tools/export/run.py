@@ -267,7 +267,30 @@ def export_run(
         files = _move_into_place(work, out, formats, option)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    _warn_of_the_run(run_dir, result.rows)
     return ExportResult(out, files, result.frames, result.rows, result.images, result.messages)
+
+
+_ENDED = {
+    "interrupted": "was interrupted",
+    "failed": "failed",
+    "running": "did not finish (it was still running or was killed)",
+}
+
+
+def _warn_of_the_run(run_dir: Path, rows: int) -> None:
+    """A warning when the exports are of a run that did not complete (its ``summary.json``), or hold no pose."""
+    try:
+        status = json.loads((run_dir / "summary.json").read_text(encoding="utf-8")).get("status")
+    except (OSError, ValueError, AttributeError):
+        status = None
+    where = f"RUN_DIR {printable(run_dir)}"
+    if status in _ENDED:
+        log.warning(
+            "%s: the run %s (its summary.json): the exports hold the %d pose(s) it wrote", where, _ENDED[status], rows
+        )
+    elif rows == 0:
+        log.warning("%s: its poses.csv holds no pose: the exports are empty", where)
 
 
 @dataclass
