@@ -161,12 +161,9 @@ def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
     """Are the source's frames independent stills (an image folder or glob, without ``--sequence`` or
     ``--fps``)? Says which was assumed, in one line (unless ``-q``; summary.json's ``decided_with`` says it
     too). A video given ``--fps`` or ``--sequence`` (options of image sources) is warned that they are ignored."""
+    fps_given, sequence_given = args.fps is not None, getattr(args, "sequence", False)
     if not info.stills:
-        ignored = [
-            name
-            for name, given in (("--fps", args.fps is not None), ("--sequence", getattr(args, "sequence", False)))
-            if given
-        ]
+        ignored = [name for name, given in (("--fps", fps_given), ("--sequence", sequence_given)) if given]
         if ignored:
             log.warning(
                 "%s: ignored, %s is a video (its frames are a sequence, timed by the video itself); %s only for "
@@ -176,7 +173,7 @@ def stills_assumed(args: argparse.Namespace, info: SourceInfo) -> bool:
                 "they are" if len(ignored) > 1 else "it is",
             )
         return False
-    sequence = getattr(args, "sequence", False) or args.fps is not None
+    sequence = sequence_given or fps_given
     count = f"{info.frame_count} image(s)" if info.frame_count is not None else "the images"
     if sequence and getattr(args, "no_filter", False):
         note = f"{count} tracked in order, each decided alone (--no-filter)"

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_FAILURE, EXIT_OK, printable
-from ..targets import TrackState
 
 PLAIN_EVERY_S = 5.0  # a piped run's progress: a plain line this often (seconds)
 
@@ -272,9 +271,6 @@ def format_where(summary: dict[str, Any]) -> list[str]:
     return lines
 
 
-_MEASURED_STATES = frozenset(str(state) for state in TrackState if state.measured)  # tracked, ambiguous
-
-
 def _folded_members(targets: dict[str, Any]) -> dict[str, str]:
     """The markers folded under a board in the table: marker -> board, for every marker drawn as part of one
     board (summary.json's ``member_of``) in each frame it was measured in, when that board has a row. Its gap
@@ -283,11 +279,9 @@ def _folded_members(targets: dict[str, Any]) -> dict[str, str]:
     folded = {}
     for name, entry in targets.items():
         member_of = entry.get("member_of") or {}
-        states = entry.get("states", {})
-        measured = sum(count for state, count in states.items() if state in _MEASURED_STATES)
         if len(member_of) == 1:
             board, frames = next(iter(member_of.items()))
-            if frames == measured and board in targets:
+            if frames == entry.get("frames_measured") and board in targets:
                 folded[name] = board
     return folded
 

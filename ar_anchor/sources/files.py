@@ -112,10 +112,11 @@ def _other_files(others: list[Path]) -> str:
     and how a video is given."""
     if not others:
         return ""
-    named = ", ".join(printable(p.name) for p in others[:2]) + (", ..." if len(others) > 2 else "")
+    first = sorted(others, key=natural_key)[:2]
+    named = ", ".join(printable(p.name) for p in first) + (", ..." if len(others) > 2 else "")
     return (
         f"; it holds {len(others)} other file(s) ({named}): a video is given as the file itself "
-        f"(replay {printable(others[0])}), a folder of videos to `ar-anchor batch`"
+        f"(replay {printable(first[0])}), a folder of videos to `ar-anchor batch`"
     )
 
 
@@ -143,7 +144,7 @@ class ImageFolderSource(ClosingSource):
         if path.is_dir():
             entries = [p for p in path.iterdir() if p.is_file()]
             files = [p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS]
-            others = sorted((p for p in entries if p.suffix.lower() not in IMAGE_EXTENSIONS), key=natural_key)
+            others = [p for p in entries if p.suffix.lower() not in IMAGE_EXTENSIONS]
             if others:
                 log.info("%s: ignoring %d non-image file(s)", path, len(others))
             where = f"folder {path}"
