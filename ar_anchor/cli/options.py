@@ -182,6 +182,11 @@ def add_run_options(parser: argparse.ArgumentParser, name: str, *, spawn: bool =
         action="store_true",
         help="do not draw overlays into the recording (faster); --video-out still does",
     )
+    parser.add_argument(
+        "--no-recording",
+        action="store_true",
+        help="write no rerun recording: poses.csv and summary.json only (and --video-out when given)",
+    )
     if spawn:
         add_viewer_options(parser)
 
@@ -401,6 +406,10 @@ def run_options(args: argparse.Namespace, name: str, **specific: Any):  # noqa: 
 
     if getattr(args, "serve_port", None) is not None and not getattr(args, "serve", False):
         raise InputError("--serve-port is the port of --serve's web viewer: give --serve too")
+    if args.no_recording:
+        viewer = next((f for f in ("spawn", "connect", "serve") if getattr(args, f, None)), None)
+        if viewer is not None:
+            raise InputError(f"--no-recording writes no recording for --{viewer}'s viewer to show: give one of them")
     shared_id = getattr(args, "recording_id", None)
     return RunOptions(
         max_frames=args.max_frames,
@@ -411,6 +420,7 @@ def run_options(args: argparse.Namespace, name: str, **specific: Any):  # noqa: 
         camera_name=getattr(args, "camera_name", None),
         video_out=args.video_out,
         overlays=not args.no_overlay,
+        recording=not args.no_recording,
         **specific,
     )
 

@@ -152,7 +152,7 @@ def _abandon(
     """A second Ctrl-C cut the closing short: ``summary.json`` is written now (status ``interrupted``,
     naming what may be incomplete). ``poses.csv`` is flushed after every frame, so it is complete; the
     outputs still closing may not be: their names."""
-    incomplete = [outputs.recording_rrd.name]
+    incomplete = [outputs.recording_rrd.name] if options.recording else []
     if options.video_out is not None:
         incomplete.append(str(options.video_out))
     if outputs.raw_video is not None:

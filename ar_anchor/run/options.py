@@ -33,4 +33,6 @@ class RunOptions:
     overlays: bool = True  # the config's overlays (meshes in the recording; drawn for --video-out / overlay_images)
     decode_queue: int = 4  # frames decoded ahead of the tracker (file and synthetic sources)
     output_queue: int = 8  # tracked frames waiting for their overlay, video and rerun log
+    recording: bool = True  # the rerun recording (False: --no-recording, poses.csv and summary.json only)
+    output_process: bool = True  # draw and log in a process of its own (False: a thread of this process)
     extra_summary: dict[str, Any] = field(default_factory=dict)

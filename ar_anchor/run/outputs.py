@@ -114,7 +114,7 @@ class DiskFullError(OutputError):
     """An output could not be written because the disk (or the quota) is full; ``path``: that file (None
     when the error did not say which: raised by the output thread's writer, say)."""
 
-    def __init__(self, message: str, path: Path | None) -> None:
+    def __init__(self, message: str, path: Path | None = None) -> None:  # (a default: it is unpickled with args only)
         super().__init__(message)
         self.path = path
 

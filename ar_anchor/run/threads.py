@@ -32,8 +32,9 @@ from typing import Any
 
 from ..sources.base import Frame
 from ..track.results import FrameResult
+from .output_worker import OutputSpec, OutputWorker, WorkerCounts, close_in_order
 
-__all__ = ["OutputStage", "Prefetcher"]
+__all__ = ["OutputStage", "OutputThread", "Prefetcher"]
 
 log = logging.getLogger(__name__)
 
@@ -221,3 +222,52 @@ class OutputStage:
         except queue.Full:
             pass  # it is busy, and looks at _abandon before its next item
         self._thread.join(wait_s)
+
+
+class OutputThread:
+    """An :class:`~.output_worker.OutputWorker` behind an :class:`OutputStage` in this process: the same
+    interface as :class:`~.output_process.OutputProcess` (``RunOptions(output_process=False)``: an embedding
+    that cannot start a process, or a test that watches the worker from inside)."""
+
+    def __init__(self, spec: OutputSpec, depth: int = 8) -> None:
+        self.spec = spec
+        self.gone: str | None = None  # (a thread does not die alone)
+        self._worker = OutputWorker(spec)
+        self._stage: OutputStage | None = None
+        self.image_logging: str | None = None
+        try:
+            self._worker.open()
+        except BaseException:
+            self._worker.close()
+            raise
+        self.image_logging = self._worker.counts.image_logging
+        self._stage = OutputStage(self._worker.work, depth=depth)
+
+    @property
+    def done(self) -> int:
+        return self._stage.done if self._stage is not None else 0
+
+    @property
+    def skipped(self) -> int:
+        return self._stage.skipped if self._stage is not None else 0
+
+    @property
+    def latency_ms(self) -> dict[str, list[float]]:
+        return self._stage.latency_ms if self._stage is not None else {}
+
+    def wait_open(self) -> None:
+        """Opened already (in the constructor)."""
+
+    def submit(self, frame: Frame, result: FrameResult, stages: dict[str, float], *, block: bool) -> bool:
+        assert self._stage is not None
+        return self._stage.submit(frame, result, stages, block=block)
+
+    def abandon(self) -> None:
+        if self._stage is not None:
+            self._stage._stop_now(5.0)
+
+    def close(self, timeout_s: float = 60.0) -> WorkerCounts:
+        """The thread stopped (the queued frames finished), then the worker's outputs closed, in order."""
+        steps = [lambda: self._stage.close(timeout_s) if self._stage is not None else None, self._worker.close]
+        close_in_order(steps)
+        return self._worker.counts

@@ -426,7 +426,9 @@ def test_the_overlay_is_rasterised_only_for_video_out_or_overlay_images(
 
     monkeypatch.setattr(Recording, "log", spy_log)
     monkeypatch.setattr(Recording, "jpeg", spy_jpeg)
-    options = RunOptions(video_out=tmp_path / "annotated.mp4" if video_out else None, overlays=overlays)
+    options = RunOptions(
+        video_out=tmp_path / "annotated.mp4" if video_out else None, overlays=overlays, output_process=False
+    )  # (the worker in this process, where the spies are)
     (tmp_path / "out").mkdir()
     outputs = RunOutputs(tmp_path / "out", options)
     outputs.open(camera, RecordingConfig(overlay_images=overlay_images), SourceInfo(), renderer)

@@ -35,7 +35,8 @@ class CountingTracker(Tracker):
         return super().track(detected)
 
 
-def test_the_recording_is_opened_off_the_main_thread_and_the_run_is_the_same(tmp_path, monkeypatch):
+@pytest.mark.parametrize("process", [True, False], ids=["process", "thread"])
+def test_the_recording_is_opened_off_the_main_thread_and_the_run_is_the_same(tmp_path, monkeypatch, process):
     threads = []
     original = RerunRecorder.__init__
 
@@ -45,8 +46,9 @@ def test_the_recording_is_opened_off_the_main_thread_and_the_run_is_the_same(tmp
 
     monkeypatch.setattr(RerunRecorder, "__init__", recorder_init)
     scene = small_scene()
-    result = run_session(SyntheticSource(scene), Tracker(demo_config(), scene.camera), tmp_path / "out")
-    assert threads == ["open-outputs"]
+    options = RunOptions(output_process=process)
+    result = run_session(SyntheticSource(scene), Tracker(demo_config(), scene.camera), tmp_path / "out", options)
+    assert threads == ([] if process else ["open-outputs"])  # (a process: opened in the child, not here)
     assert result.summary["status"] == "completed" and result.summary["frames"] == 6
     assert result.summary["frames_logged"] == 6 and result.recording_rrd.stat().st_size > 0
     assert all(thread.name != "open-outputs" for thread in threading.enumerate())  # joined
@@ -72,7 +74,7 @@ def test_an_output_that_fails_to_open_is_raised_at_the_first_frame_and_the_rest_
     replay = OfflineReplay(lambda: SyntheticSource(scene)) if offline else None
     # when a run starts
     with pytest.raises(OutputError, match="refused"):
-        run_session(SyntheticSource(scene), tracker, tmp_path / "out", RunOptions(), offline=replay)
+        run_session(SyntheticSource(scene), tracker, tmp_path / "out", RunOptions(output_process=False), offline=replay)
     # then it failed at its first frame (an offline replay too, not after its whole first pass), the
     # recording opened before it is closed, and the summary says it failed with no frame written
     assert tracker.processed == 1
@@ -90,7 +92,26 @@ def test_an_output_that_fails_to_open_is_raised_by_a_run_of_no_frames(tmp_path, 
     scene = small_scene()
     with pytest.raises(OutputError, match="refused"):
         run_session(
-            SyntheticSource(scene), Tracker(demo_config(), scene.camera), tmp_path / "out", RunOptions(max_frames=0)
+            SyntheticSource(scene),
+            Tracker(demo_config(), scene.camera),
+            tmp_path / "out",
+            RunOptions(max_frames=0, output_process=False),
         )
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["status"] == "failed" and summary["frames"] == 0
+
+
+@pytest.mark.parametrize("offline", [False, True], ids=["causal", "offline"])
+def test_a_recording_the_output_process_cannot_open_is_raised_at_the_first_frame(tmp_path, offline):
+    # given a recording.rrd that cannot be written (a folder of that name)
+    (tmp_path / "out" / "recording.rrd").mkdir(parents=True)
+    scene = small_scene()
+    tracker = CountingTracker(demo_config(), scene.camera)
+    replay = OfflineReplay(lambda: SyntheticSource(scene)) if offline else None
+    # when a run starts, its outputs in a process of their own
+    with pytest.raises(OutputError, match="recording"):
+        run_session(SyntheticSource(scene), tracker, tmp_path / "out", RunOptions(), offline=replay)
+    # then the child's failure is raised here at the first frame, and no frame was written
+    assert tracker.processed == 1
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["status"] == "failed" and summary["frames"] == 0

@@ -167,14 +167,14 @@ def test_run_outputs_close_in_their_documented_order_even_when_one_fails(tmp_pat
 
         monkeypatch.setattr(cls, "close", close)
     scene = small_scene()
-    options = RunOptions(record_raw=True, video_out=tmp_path / "annotated.mp4")
+    options = RunOptions(record_raw=True, video_out=tmp_path / "annotated.mp4", output_process=False)
     outputs = RunOutputs(tmp_path, options)
     outputs.open(scene.camera, demo_config().recording, SourceInfo(), renderer=None)
     # when they are closed
     with pytest.raises(OSError, match="disk full"):
         outputs.close()
-    # then the output thread stopped first, the recording closed last, and none was skipped
-    assert closed == ["OutputStage", "AnnotatedVideoWriter", "RawVideoWriter", "PosesCsvWriter", "RerunRecorder"]
+    # then the output thread stopped first, then the worker's outputs, then the tracker's; none was skipped
+    assert closed == ["OutputStage", "AnnotatedVideoWriter", "RerunRecorder", "RawVideoWriter", "PosesCsvWriter"]
     outputs.close()  # closing again does nothing
     assert len(closed) == 5
     summary = outputs.write_summary("failed", 1.0, {"extra": 1})
