@@ -61,10 +61,14 @@ FOUND_OK = {
 }
 
 
-def _clip(label: str, causal: list, plain: list, offline: list | None = None, found: dict | None = None) -> dict:
+def _clip(
+    label: str, causal: list, plain: list, offline: list | None = None, found: dict | None = None, bare: list = ()
+) -> dict:
     part = {"label": label, "frames": causal[0]["frames"], "causal": causal, "plain": plain, "found": found or FOUND_OK}
     if offline is not None:
         part["offline"] = offline
+    if bare:
+        part["causal_no_recording"] = list(bare)
     part["summary"] = summarise_clip(part)
     return part
 
@@ -79,6 +83,9 @@ def parts():
         [_plain(4.5, 1000, 2.0, 0.5, 4.0), _plain(5.5, 1000, 3.5, 0.5, 5.0), _plain(6.5, 1000, 2.5, 0.5, 6.0)],
         offline=[_replay(21.0, 1000, 0, 0, 0, "offline"), _replay(25.0, 1000, 0, 0, 0, "offline"),
                  _replay(30.0, 1000, 0, 0, 0, "offline")],
+        # --no-recording: tracker totals 4.4, 5.0, 4.0 ms: median 4.4
+        bare=[_replay(14.0, 1000, 2.4, 1.0, 1.0), _replay(16.0, 1000, 3.0, 1.0, 1.0),
+              _replay(15.0, 1000, 2.0, 1.0, 1.0)],
     )  # fmt: skip
     fifty = _clip(
         "fifty",
@@ -92,7 +99,13 @@ def parts():
         "label": "live",
         "seconds": 20.0,
         "runs": [{}, {}, {}],
-        "summary": {"capture_to_pose_median_ms": 8.0, "capture_to_pose_p95_ms": 15.5, "fps": 30.0},
+        "summary": {
+            "capture_to_pose_median_ms": 8.0,
+            "capture_to_pose_p95_ms": 15.5,
+            "fps": 30.0,
+            "no_recording_median_ms": 7.5,
+            "no_recording_p95_ms": 12.0,
+        },
     }
     return {"chessboard": chess, "50markers": fifty, "1080p": one, "startup": startup, "live": live}
 
@@ -100,7 +113,9 @@ def parts():
 def test_rows_ratios_and_verdicts(parts):
     rows = acceptance_rows(parts)
     by = {(r["id"], r["clip"]): r for r in rows}
-    assert [r["id"] for r in rows] == ["1a", "1b", "1c", "2a", "2b", "3", "4a", "4b", "5a", "5b", "6", "6", "6"]
+    assert [r["id"] for r in rows] == [
+        *("1a", "1b", "1c", "1d", "2a", "2b", "3", "4a", "4b", "5a", "5b", "5c", "5d", "6", "6", "6")
+    ]
     # 1a: the median tracker total (5 ms) over the median plain detect + pose (3 ms); and over 5 ms a frame
     assert by["1a", "chessboard"]["value"] == pytest.approx(5.0 / 3.0)
     assert by["1a", "chessboard"]["tracker_over_plain_loop"] == pytest.approx(1.0)
@@ -115,6 +130,11 @@ def test_rows_ratios_and_verdicts(parts):
     assert by["4a", "s"]["value"] == 0.7 and by["4a", "s"]["passed"]
     assert by["4b", "-"]["value"] == 0.31 and by["4b", "-"]["passed"] is False
     assert by["5a", "live"]["passed"] and by["5b", "live"]["passed"] is False
+    # 1d: the tracker's median total with default outputs (5 ms) over the same with --no-recording (4.4 ms)
+    assert by["1d", "chessboard"]["value"] == pytest.approx(5.0 / 4.4) and by["1d", "chessboard"]["passed"] is False
+    # 5c, 5d: live capture-to-pose with the recording over without: 8 / 7.5 passes, 15.5 / 12 does not
+    assert by["5c", "live"]["value"] == pytest.approx(8.0 / 7.5) and by["5c", "live"]["passed"]
+    assert by["5d", "live"]["value"] == pytest.approx(15.5 / 12.0) and by["5d", "live"]["passed"] is False
     assert [by["6", c]["value"] for c in ("chessboard", "fifty", "one")] == [0.0, 2.0, 0.0]
     assert [by["6", c]["passed"] for c in ("chessboard", "fifty", "one")] == [True, False, True]
     for row in rows:
@@ -197,7 +217,9 @@ def test_markdown_from_made_up_results(parts):
     results = {"meta": meta, "notes": ["a note"], "parts": parts, "rows": acceptance_rows(parts)}
     text = speed_markdown(results, "ar-anchor bench speed")
     assert "OpenCV 5.1.0" in text and "rerun-sdk 0.41.0" in text and "2 CPUs" in text and "1.00 / 2.00 / 3.00" in text
-    assert "## Acceptance: 8 of 13 rows pass, 5 fail" in text and "Note: a note." in text
+    assert "## Acceptance: 9 of 16 rows pass, 7 fail" in text and "Note: a note." in text
+    assert "| replay --causal --no-recording | 14.00, 16.00, 15.00 | 15.00 |" in text
+    assert "| 1d | chessboard | " in text and "| 1.14x | <= 1.1x | **FAIL** |" in text
     assert "| 1a | chessboard | " in text and "| 1.67x | <= 1.5x | **FAIL** |" in text
     assert "| 3 | one | " in text and "| 1.25x | >= 1.2x | **pass** |" in text
     assert "/x/" not in text and "--camera cam.yml" in text  # paths shown by their file names
@@ -361,8 +383,11 @@ def test_quick_chessboard_loop(realdata, monkeypatch, tmp_path):
     results = write_speed_report(tmp_path, quick=True, parts=("chessboard",), chessboard_frames=10, command="t")
     part = results["parts"]["chessboard"]
     assert part["looped_frames"] == 149 and part["frames"] == 149  # one whole copy: at least 10 frames
-    assert [len(part[k]) for k in ("causal", "offline", "plain")] == [1, 1, 1]
-    assert [r["id"] for r in results["rows"]] == ["1a", "1b", "1c", "6"]
+    assert [len(part[k]) for k in ("causal", "causal_no_recording", "offline", "plain")] == [1, 1, 1, 1]
+    assert [r["id"] for r in results["rows"]] == ["1a", "1b", "1c", "1d", "6"]
+    assert part["summary"]["no_recording_tracker_ms"] == pytest.approx(
+        part["causal_no_recording"][0]["tracker_ms"]["total"]
+    )
     s = part["summary"]
     assert s["offline_over_causal_wall"] == pytest.approx(
         part["offline"][0]["process_wall_s"] / part["causal"][0]["process_wall_s"]

@@ -6,8 +6,8 @@ Parts (``--clips`` picks some; :data:`PARTS`):
 ``chessboard``
     chessboard.avi (real, 640x480, 18 markers; from ``$AR_ANCHOR_REALDATA``, skipped with a note when
     absent) looped losslessly (:func:`~.remux.loop_video`) to at least ``chessboard_frames`` frames. Each
-    round runs ``ar-anchor replay --causal``, the default (offline) ``ar-anchor replay`` and the plain loop,
-    the order rotating from round to round.
+    round runs ``ar-anchor replay --causal``, the same with ``--no-recording``, the default (offline)
+    ``ar-anchor replay`` and the plain loop, the order rotating from round to round.
 ``50markers``
     The synthetic 720p 50-marker clip (:func:`~.scenes.fifty_markers_scene`) encoded to H.264: ``replay
     --causal`` and the plain loop in turns.
@@ -19,7 +19,7 @@ Parts (``--clips`` picks some; :data:`PARTS`):
 ``live``
     ``ar-anchor live --device synthetic --width 1920 --height 1080 --fps 30`` (default scene), run for
     ``live_seconds`` then interrupted, as ``ar-anchor bench run`` runs it: capture-to-pose median and p95
-    from its ``summary.json``.
+    from its ``summary.json``; each run beside one with ``--no-recording``, taking turns.
 
 Every replay runs with default outputs (poses.csv, summary.json, recording.rrd) and nothing but the
 options the clip needs (``--camera``, and ``--dictionary`` / ``--marker-length``). The plain loop is
@@ -51,6 +51,7 @@ __all__ = ["DEFAULTS", "PARTS", "QUICK", "run_speed_acceptance"]
 PARTS: tuple[str, ...] = ("chessboard", FIFTY, "1080p", "startup", "live")
 SIZE_1080P = (1920, 1080, 1480.0)  # width, height, fx: as bench run's 1080p clip
 STARTUP_FRAMES = 5
+NO_RECORDING = "replay --causal --no-recording"
 LIVE_FPS = 30
 DEFAULTS: dict[str, Any] = {
     "chessboard_frames": 1000,
@@ -148,11 +149,11 @@ class _Steps:
         progress: Callable[[int, int, str], None] | None,
     ) -> None:
         per_part = {
-            "chessboard": 1 + 3 * repeats,
+            "chessboard": 1 + 4 * repeats,
             FIFTY: 1 + 2 * repeats,
             "1080p": 1 + 2 * repeats,
             "startup": 2 + repeats,
-            "live": live_runs,
+            "live": 2 * live_runs,
         }
         self.total = sum(per_part[p] for p in parts)
         self.progress, self.done = progress, 0
@@ -191,20 +192,26 @@ def _clip_part(
     step: Callable[[str], None],
     *,
     offline: bool,
+    no_recording: bool = False,
 ) -> dict[str, Any]:
-    """A clip's rounds (``replay --causal``, the offline replay when ``offline``, the plain loop), the
-    per-frame marker comparison of each round, the medians and the ratios."""
+    """A clip's rounds (``replay --causal``, the same with ``--no-recording`` when ``no_recording``, the
+    offline replay when ``offline``, the plain loop), the per-frame marker comparison of each round, the
+    medians and the ratios."""
     slug = video.stem
     runs: dict[str, Callable[[int], dict[str, Any]]] = {
         "replay --causal": lambda i: replay_run(video, replay_args, tmp / f"{slug}_causal_{i}", causal=True),
     }
+    if no_recording:
+        runs[NO_RECORDING] = lambda i: replay_run(
+            video, [*replay_args, "--no-recording"], tmp / f"{slug}_norec_{i}", causal=True
+        )
     if offline:
         runs["replay (offline)"] = lambda i: replay_run(video, replay_args, tmp / f"{slug}_offline_{i}", causal=False)
     runs["plain loop"] = lambda i: plain_run(video, *plain_args)
     done = _rounds(label, runs, repeats, step)
     causal, plain = done["replay --causal"], done["plain loop"]
     found = [found_comparison(c.pop("_measured"), p["_ids"]) for c, p in zip(causal, plain)]
-    for run in done.get("replay (offline)", []):
+    for run in [*done.get("replay (offline)", []), *done.get(NO_RECORDING, [])]:
         run.pop("_measured")
     same_ids = all(p["_ids"] == plain[0]["_ids"] for p in plain)
     for run in plain:
@@ -222,6 +229,8 @@ def _clip_part(
     }
     if offline:
         part["offline"] = done["replay (offline)"]
+    if no_recording:
+        part["causal_no_recording"] = done[NO_RECORDING]
     part["summary"] = summarise_clip(part)
     return part
 
@@ -247,6 +256,7 @@ def _chessboard(
         tmp,
         step,
         offline=True,
+        no_recording=True,
     )
     return {**part, "source": str(video), "looped_frames": frames}
 
@@ -332,13 +342,19 @@ def _startup(tmp: Path, repeats: int, help_runs: int, step: Callable[[str], None
 
 
 def _live(tmp: Path, runs: int, seconds: float, step: Callable[[str], None]) -> dict[str, Any]:
-    """``runs`` live synthetic 1080p runs of ``seconds`` each (``bench run``'s live run, the default scene)."""
-    done = []
+    """``runs`` live synthetic 1080p runs of ``seconds`` each (``bench run``'s live run, the default scene),
+    each beside one with ``--no-recording`` (taking turns: which goes first alternates)."""
+    done: list[dict[str, Any]] = []
+    bare: list[dict[str, Any]] = []
     for index in range(runs):
-        step(f"live --device synthetic 1920x1080, {seconds:g} s, {index + 1} of {runs}")
-        run = live_run(tmp, seconds, f"live_{index}")
-        run.pop("rss_mb", None)
-        done.append(run)
+        order = [False, True] if index % 2 == 0 else [True, False]
+        for without in order:
+            label = " --no-recording" if without else ""
+            step(f"live --device synthetic 1920x1080{label}, {seconds:g} s, {index + 1} of {runs}")
+            extra = ("--no-recording",) if without else ()
+            run = live_run(tmp, seconds, f"live_{'norec_' if without else ''}{index}", extra=extra)
+            run.pop("rss_mb", None)
+            (bare if without else done).append(run)
 
     def stage(run: dict[str, Any], key: str) -> float | None:
         value = run["stages"].get("capture_to_pose", {}).get(key)
@@ -349,10 +365,14 @@ def _live(tmp: Path, runs: int, seconds: float, step: Callable[[str], None]) -> 
         "command": f"ar-anchor live --device synthetic --width 1920 --height 1080 --fps {LIVE_FPS}",
         "seconds": seconds,
         "runs": done,
+        "runs_no_recording": bare,
         "summary": {
             "capture_to_pose_median_ms": median(stage(r, "median") for r in done),
             "capture_to_pose_p95_ms": median(stage(r, "p95") for r in done),
             "fps": median(r["fps"] for r in done),
             "dropped_queue": median(r["live"].get("dropped_queue") for r in done),
+            "no_recording_median_ms": median(stage(r, "median") for r in bare),
+            "no_recording_p95_ms": median(stage(r, "p95") for r in bare),
+            "frames_not_logged": median(r.get("frames_not_logged") for r in done),
         },
     }

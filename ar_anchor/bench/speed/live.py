@@ -44,15 +44,18 @@ def _sigint_as_a_user_has_it() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def live_run(tmp: Path, seconds: float, name: str, config: str | None = None) -> dict[str, Any]:
+def live_run(
+    tmp: Path, seconds: float, name: str, config: str | None = None, extra: tuple[str, ...] = ()
+) -> dict[str, Any]:
     """A live synthetic 1080p run for ``seconds`` after the camera opened, then SIGINT. ``config``: a
-    tracker TOML (the synthetic scene holds the markers and boards it names)."""
+    tracker TOML (the synthetic scene holds the markers and boards it names); ``extra``: more options
+    (``--no-recording``)."""
     out = tmp / name
     width, height = LIVE_SIZE
     command = cli(
         "live", "--device", "synthetic", "--width", str(width), "--height", str(height), "--fps", str(LIVE_FPS)
     )
-    command += ["--out", str(out)]
+    command += [*extra, "--out", str(out)]
     if config is not None:
         path = tmp / f"{name}.toml"
         path.write_text(config)

@@ -161,13 +161,16 @@ def _how(meta: Mapping[str, Any]) -> list[str]:
         "(start-up, the recording's final flush included). 3: that fps over the plain loop process's, measured "
         "the same way (its Python start-up and imports included).",
         "- 1c: the default replay (offline: three passes, the video decoded twice) process's wall time over "
-        "the `--causal` one's.",
+        "the `--causal` one's. 1d: the tracker per frame (as 1a) with default outputs over the same replay with "
+        "`--no-recording` (poses.csv and summary.json only), in the same rounds: what the recording costs the "
+        "tracker.",
         "- 4a: from starting `ar-anchor replay CLIP --causal --max-frames 1` to its first row in poses.csv (the "
         "first frame tracked and its pose written; the file polled every 2 ms); the process's exit is given "
         "beside it. 4b: `python -m ar_anchor --help`, start to exit, median of "
         f"{_n(meta.get('help_runs') or 0, 'run')} (`python -c pass` beside it: the interpreter's own start-up).",
         "- 5: `ar-anchor bench run`'s live run: `summary.json`'s capture-to-pose median and p95 (frame delivered "
-        "by the device to its pose), median over the runs.",
+        "by the device to its pose), median over the runs. 5c, 5d: those medians over the same of as many "
+        "runs with `--no-recording`, taking turns.",
         "- 6: per frame, the markers the tracker measured (poses.csv rows `tracked` or `ambiguous`) against "
         "the ids the plain loop found; the round where the tracker fell shortest. *missed*: marker-frames the "
         "plain loop found and the tracker did not; *extra*: the other way round.",
@@ -191,6 +194,13 @@ def _clip_section(part: Mapping[str, Any]) -> list[str]:
         f"| {fmt(s['causal_fps_run'], 1)} | detect {fmt(stage['detect'])} + pose {fmt(stage['pose'])} + filter "
         f"{fmt(stage['filter'])} = {fmt(s['tracker_ms'])} ms |",
     ]
+    if "causal_no_recording" in part:
+        bare = part["causal_no_recording"]
+        lines.append(
+            f"| replay --causal --no-recording | {_runs(bare)} | {fmt(s['no_recording_wall_s'])} | "
+            f"{fmt(s['no_recording_fps_process'], 1)} | {fmt(median(r.get('fps_run') for r in bare), 1)} | "
+            f"detect + pose + filter {fmt(s['no_recording_tracker_ms'])} ms |"
+        )
     if "offline" in part:
         fps_run = [r.get("fps_run") for r in part["offline"]]
         lines.append(
@@ -238,10 +248,12 @@ def _live_section(part: Mapping[str, Any]) -> list[str]:
         f"appear), then interrupted (SIGINT) as `ar-anchor bench run` does; {part['label']}.",
         "",
         "| run | frames tracked (fps) | dropped by the camera queue | capture-to-pose median / p95 ms | detect / "
-        "pose / filter / log median ms |",
-        "|---|---|---|---|---|",
+        "pose / filter / log median ms | frames not logged |",
+        "|---|---|---|---|---|---|",
     ]
-    for index, run in enumerate(part["runs"], 1):
+    runs = [(str(i), run) for i, run in enumerate(part["runs"], 1)]
+    runs += [(f"{i} --no-recording", run) for i, run in enumerate(part.get("runs_no_recording", []), 1)]
+    for index, run in runs:
         st = run["stages"]
 
         def med(name: str, stages: Mapping[str, Any] = st) -> str:
@@ -250,7 +262,7 @@ def _live_section(part: Mapping[str, Any]) -> list[str]:
         lines.append(
             f"| {index} | {run['frames']} ({fmt(run['fps'], 1)}) | {run['live'].get('dropped_queue', 0)} | "
             f"{med('capture_to_pose')} / {fmt(st.get('capture_to_pose', {}).get('p95'))} | {med('detect')} / "
-            f"{med('pose')} / {med('filter')} / {med('log')} |"
+            f"{med('pose')} / {med('filter')} / {med('log')} | {run.get('frames_not_logged', 0)} |"
         )
     return lines
 

@@ -33,6 +33,7 @@ TARGETS: dict[str, tuple[str, float, str]] = {
     "1a": ("<=", 1.5, "x"),
     "1b": (">=", 60.0, "fps"),
     "1c": ("<=", 1.6, "x"),
+    "1d": ("<=", 1.1, "x"),
     "2a": ("<=", 2.0, "x"),
     "2b": (">=", 30.0, "fps"),
     "3": (">=", 1.2, "x"),
@@ -40,6 +41,8 @@ TARGETS: dict[str, tuple[str, float, str]] = {
     "4b": ("<=", 0.3, "s"),
     "5a": ("<=", 8.0, "ms"),
     "5b": ("<=", 15.0, "ms"),
+    "5c": ("<=", 1.1, "x"),
+    "5d": ("<=", 1.1, "x"),
     "6": ("==", 0.0, "frames"),
 }
 
@@ -114,6 +117,12 @@ def summarise_clip(part: Mapping[str, Any]) -> dict[str, Any]:
     out["tracker_over_plain_detect_pose"] = ratio(out["tracker_ms"], out["plain_detect_pose_ms"])
     out["tracker_over_plain_loop"] = ratio(out["tracker_ms"], out["plain_loop_ms_per_frame"])
     out["causal_fps_over_plain_fps"] = ratio(out["causal_fps_process"], out["plain_fps_process"])
+    bare = part.get("causal_no_recording", [])
+    if bare:
+        out["no_recording_tracker_ms"] = median(r["tracker_ms"].get("total") for r in bare)
+        out["no_recording_fps_process"] = median(r["fps_process"] for r in bare)
+        out["no_recording_wall_s"] = median(r["process_wall_s"] for r in bare)
+        out["recording_over_no_recording"] = ratio(out["tracker_ms"], out["no_recording_tracker_ms"])
     if offline:
         out["offline_wall_s"] = median(r["process_wall_s"] for r in offline)
         out["offline_fps_process"] = median(r["fps_process"] for r in offline)
@@ -167,6 +176,13 @@ def acceptance_rows(parts: Mapping[str, Any]) -> list[dict[str, Any]]:
             _row("1c", chess["label"], "default (offline) replay wall / `replay --causal` wall",
                  s.get("offline_over_causal_wall"), f"{_s(s.get('offline_wall_s'))} s / {_s(s['causal_wall_s'])} s")
         )  # fmt: skip
+        if "recording_over_no_recording" in s:
+            rows.append(
+                _row("1d", chess["label"], "tracker detect + pose + filter per frame, `replay --causal` with default "
+                     "outputs / with `--no-recording`", s["recording_over_no_recording"],
+                     f"{_ms(s['tracker_ms'])} / {_ms(s['no_recording_tracker_ms'])}; whole process "
+                     f"{_fps(s['causal_fps_process'])} / {_fps(s['no_recording_fps_process'])} fps")
+            )  # fmt: skip
     fifty = _measured(parts, "50markers")
     if fifty is not None:
         s = fifty["summary"]
@@ -212,6 +228,13 @@ def acceptance_rows(parts: Mapping[str, Any]) -> list[dict[str, Any]]:
         how = f"median over {runs} run{'s' * (runs != 1)} of {live['seconds']:g} s; {_fps(s['fps'])} fps tracked"
         rows.append(_row("5a", live["label"], "capture-to-pose latency, median", s["capture_to_pose_median_ms"], how))
         rows.append(_row("5b", live["label"], "capture-to-pose latency, p95", s["capture_to_pose_p95_ms"], how))
+        if s.get("no_recording_median_ms") is not None:
+            for row_id, key, what in (("5c", "median", "median"), ("5d", "p95", "p95")):
+                mine, bare = s[f"capture_to_pose_{key}_ms"], s[f"no_recording_{key}_ms"]
+                rows.append(
+                    _row(row_id, live["label"], f"capture-to-pose {what}, recording on / `--no-recording`",
+                         ratio(mine, bare), f"{_ms(mine)} / {_ms(bare)}; {how}")
+                )  # fmt: skip
     rows += _found_rows(parts)
     return rows
 
