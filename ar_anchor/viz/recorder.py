@@ -36,8 +36,9 @@ edges (logged once in ``events``), while the image and its 2D detections stay in
 other targets are placed from it, so the projection onto the frame stays right (their ``world`` places are
 then relative to that held camera).
 
-The ``metrics/*`` series are sent every ``metrics_every`` frames, one call per series holding every
-frame's value (:mod:`.series`); the 3D scene and images every frame.
+The ``metrics/*`` series and the targets' poses (``world/targets/<target>``'s ``Transform3D``) are sent
+every ``metrics_every`` frames, one call per entity holding every frame's value (:mod:`.series`: a live
+viewer sees them up to that many frames late); the rest of the 3D scene and the images every frame.
 
 A target that is gone (no longer in a frame's results) is cleared once, on that frame, from every
 entity above that is its own; it is drawn again when it comes back. The anchor's shape is the
@@ -195,7 +196,7 @@ class RerunRecorder:
         spike of 100-300 MB at every part)."""
         assert self.rrd_path is not None
         path = self.rrd_path.with_name(f"{self.rrd_path.stem}.part{len(self.parts) + 1}{self.rrd_path.suffix}")
-        self.series.flush()  # the metrics kept so far belong to the file that ends
+        self.series.flush()  # the metrics and poses kept so far belong to the file that ends
         self.recording.next_file(path)
         self._part_started = time.monotonic()
         self._part_media_ns = None
@@ -275,7 +276,9 @@ class RerunRecorder:
     def _clear_gone(self, result: FrameResult) -> None:
         """Clear, once, the entities of every target drawn before that is not in this frame's results."""
         for name in [name for name in self._drawn if name not in result.targets]:
-            for entity in sorted(self._drawn.pop(name)):
+            entities = sorted(self._drawn.pop(name))
+            self.series.clearing(entities)  # (its values kept at the clear's time go out before it)
+            for entity in entities:
                 self.recording.clear(entity, recursive=True)
                 if entity == f"world/targets/{entity_name(name)}":
                     # a cleared TransformAxes3D is drawn at the viewer's default length, from the world origin
@@ -457,10 +460,8 @@ class RerunRecorder:
             if name not in self._shapes_logged or any(e.kind == "group" for e in target.events):
                 self._log_shape(name, target, is_anchor=False)  # (a learned group's members changed: drawn anew)
             world_from_target = world_from_camera.compose(target.pose)
-            self.recording.log(
-                self._own(name, f"world/targets/{entity_name(name)}"),
-                rr.Transform3D(translation=world_from_target.tvec, mat3x3=world_from_target.rotation),
-            )
+            entity = self._own(name, f"world/targets/{entity_name(name)}")
+            self.series.transform(entity, world_from_target.tvec, world_from_target.rotation)  # sent in batches
             labels.append((name, world_from_target.tvec, target.length_m))
         self._log_labels(labels)
         if labels and not self._framed:
@@ -569,7 +570,7 @@ class RerunRecorder:
             self._causal_drawn = False
 
     def close(self, timeout_s: float | None = None) -> None:
-        """Send the metrics kept, flush everything to the sinks and close the file (the .rrd is complete
+        """Send the metrics and poses kept, flush everything to the sinks and close the file (the .rrd is complete
         afterwards).
 
         The flush is bounded (``timeout_s``, default ``[recording] flush_timeout_s``): a viewer that went

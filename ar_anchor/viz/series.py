@@ -1,17 +1,27 @@
-"""Time series sent in batches: each frame's scalars kept, and sent every N frames, one call per series.
+"""Per-frame values sent in batches: each frame's scalars and target poses kept, and sent every N frames,
+one call per entity.
 
 A per-frame ``rr.log`` of every plotted number (each target's reprojection error, ambiguity, flip evidence;
-every stage's time) is a hundred calls a frame with a dozen targets, each paid in the output thread that
-shares the GIL with the tracker. :class:`SeriesBuffer` keeps the values with the frame they belong to and
-sends each series' values of the last ``every`` frames in one ``send_columns``: the plots hold every frame's
-value, and a live viewer sees them up to ``every`` frames late. Rerun orders data by their time, not by
-when they arrive, so a clear logged meanwhile (a target gone) still applies from its own frame on.
+every stage's time) and of every target's pose is a hundred calls a frame with a dozen targets, each paid in
+the output thread that shares the GIL with the tracker (a call costs 50-150 us of Python and rerun's chunk
+building; sending N frames' rows in one costs about what one frame's does). :class:`SeriesBuffer` keeps the
+values with the frame they belong to and sends each entity's values of the last ``every`` frames in one
+``send_columns``: the recording holds every frame's value at that frame's ``frame`` and ``time`` (a pose
+also on ``log_time``, which ``rr.log`` stamps each call with: the wall clock when its frame was logged), and
+a live viewer sees them up to ``every`` frames late. Rerun orders data by their time, not by when they
+arrive, so a clear logged meanwhile (a target gone) still applies from its own frame on; only where the
+clear's time is that of a value kept (frames at the same time) does the order of arrival decide, and those
+values are sent before it (:meth:`SeriesBuffer.clearing`).
 """
 
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Collection
 from typing import Any
+
+import numpy as np
 
 from .sinks import Recording
 
@@ -19,11 +29,12 @@ __all__ = ["SeriesBuffer"]
 
 
 class SeriesBuffer:
-    """Scalars of many series (entity paths) at the current frame, sent every ``every`` frames.
+    """Scalars of many series and poses of many entities (entity paths) at the current frame, sent every
+    ``every`` frames.
 
-    :meth:`at` sets the frame (its ``frame`` sequence number and ``time`` in seconds) that :meth:`add`
-    files values under; :meth:`flush` sends what is kept (also done by :meth:`at` once ``every`` frames
-    are kept, and due before the recording's file changes or closes).
+    :meth:`at` sets the frame (its ``frame`` sequence number and ``time`` in seconds) that :meth:`add` and
+    :meth:`transform` file values under; :meth:`flush` sends what is kept (also done by :meth:`at` once
+    ``every`` frames are kept, and due before the recording's file changes or closes).
     """
 
     def __init__(self, recording: Recording, every: int) -> None:
@@ -31,7 +42,9 @@ class SeriesBuffer:
         self.every = max(1, int(every))
         self._frames: list[int] = []  # the frames kept, in order
         self._seconds: list[float] = []
+        self._log_ns: list[int] = []  # the wall clock when each frame was logged (rerun's ``log_time``)
         self._series: dict[str, tuple[list[int], list[float]]] = {}  # entity -> (row of each value, values)
+        self._poses: dict[str, tuple[list[int], list[np.ndarray], list[np.ndarray]]] = {}  # -> rows, t, R
 
     def at(self, frame: int, seconds: float) -> None:
         """The frame the next values belong to; the kept frames are sent first when there are ``every``."""
@@ -39,6 +52,7 @@ class SeriesBuffer:
             self.flush()
         self._frames.append(int(frame))
         self._seconds.append(float(seconds))
+        self._log_ns.append(time.time_ns())
 
     def add(self, entity: str, value: float | None) -> None:
         """One point of the series ``entity`` at the current frame; None and non-finite values are skipped."""
@@ -48,16 +62,46 @@ class SeriesBuffer:
         rows.append(len(self._frames) - 1)
         values.append(float(value))
 
-    def flush(self) -> None:
-        """Send every series' kept values (one call each; series with values at the same frames share their
-        time columns) and start afresh."""
-        frames, seconds, series = self._frames, self._seconds, self._series
-        self._frames, self._seconds, self._series = [], [], {}
-        indexes: dict[tuple[int, ...], Any] = {}  # the rows of a series -> its time columns
-        for entity, (rows, values) in series.items():
-            key = tuple(rows)
+    def transform(self, entity: str, translation: np.ndarray, rotation: np.ndarray) -> None:
+        """``entity``'s ``Transform3D`` (``translation``, 3x3 ``rotation``) at the current frame."""
+        if not self._frames:
+            return
+        rows, translations, rotations = self._poses.setdefault(entity, ([], [], []))
+        rows.append(len(self._frames) - 1)
+        translations.append(translation)
+        rotations.append(rotation)
+
+    def clearing(self, entities: Collection[str]) -> None:
+        """``entities`` are cleared at the current frame: their kept values are sent first if a kept frame
+        is not before it on a timeline (rerun breaks a tie of times by arrival, and the clear was logged after
+        them); otherwise they stay kept, the clear applying from its own time on whenever they arrive."""
+        frames, seconds = self._frames, self._seconds
+        if any(frame >= frames[-1] for frame in frames[:-1]) or any(s >= seconds[-1] for s in seconds[:-1]):
+            self.flush(entities)
+
+    def flush(self, entities: Collection[str] | None = None) -> None:
+        """Send the kept values (one call per entity; entities with values at the same frames share their
+        time columns): of every entity, and start afresh; or, given ``entities``, of those only."""
+        frames, seconds, log_ns = self._frames, self._seconds, self._log_ns
+        if entities is None:
+            series, poses = self._series, self._poses
+            self._frames, self._seconds, self._log_ns, self._series, self._poses = [], [], [], {}, {}
+        else:
+            series = {entity: self._series.pop(entity) for entity in entities if entity in self._series}
+            poses = {entity: self._poses.pop(entity) for entity in entities if entity in self._poses}
+        indexes: dict[tuple[tuple[int, ...], bool], Any] = {}  # the rows of an entity (+ log_time) -> time columns
+
+        def times(rows: list[int], logged: bool) -> Any:
+            key = (tuple(rows), logged)
             if key not in indexes:
                 indexes[key] = self.recording.time_columns(
-                    frames=[frames[row] for row in rows], seconds=[seconds[row] for row in rows]
+                    frames=[frames[row] for row in rows],
+                    seconds=[seconds[row] for row in rows],
+                    log_ns=[log_ns[row] for row in rows] if logged else None,
                 )
-            self.recording.scalar_columns(entity, values, indexes[key])
+            return indexes[key]
+
+        for entity, (rows, values) in series.items():
+            self.recording.scalar_columns(entity, values, times(rows, False))
+        for entity, (rows, translations, rotations) in poses.items():
+            self.recording.transform_columns(entity, translations, rotations, times(rows, True))

@@ -16,6 +16,7 @@ are shifted by half a pixel here.
 from __future__ import annotations
 
 import errno
+import functools
 import logging
 import math
 import os
@@ -27,6 +28,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -230,10 +232,17 @@ class Recording:
             self.stream.log(self._at(entity), rr.Scalars(float(value)))
 
     @staticmethod
-    def time_columns(*, frames: Sequence[int], seconds: Sequence[float]) -> list[rr.TimeColumn]:
-        """The run recorder's timelines at several frames, for :meth:`scalar_columns`: ``frames`` on the
-        ``frame`` sequence, ``seconds`` on ``time``."""
-        return [rr.TimeColumn("frame", sequence=frames), rr.TimeColumn("time", duration=seconds)]
+    def time_columns(
+        *, frames: Sequence[int], seconds: Sequence[float], log_ns: Sequence[int] | None = None
+    ) -> list[rr.TimeColumn]:
+        """The run recorder's timelines at several frames, for :meth:`scalar_columns` and
+        :meth:`transform_columns`: ``frames`` on the ``frame`` sequence, ``seconds`` on ``time``, and
+        ``log_ns`` (nanoseconds since the epoch, when given) on ``log_time``, the wall clock ``rr.log``
+        stamps each call with."""
+        columns = [rr.TimeColumn("frame", sequence=frames), rr.TimeColumn("time", duration=seconds)]
+        if log_ns is not None:
+            columns.append(rr.TimeColumn("log_time", timestamp=np.asarray(log_ns, "datetime64[ns]")))
+        return columns
 
     def scalar_columns(self, entity: str, values: Sequence[float], times: Any) -> None:
         """Points of the time series ``entity`` at several times in one call: ``values[i]`` at the i-th row
@@ -242,6 +251,28 @@ class Recording:
             self.stream.send_columns(
                 self._at(entity), indexes=times, columns=rr.Scalars.columns(scalars=np.asarray(values))
             )
+
+    def transform_columns(
+        self, entity: str, translations: Sequence[np.ndarray], rotations: Sequence[np.ndarray], times: Any
+    ) -> None:
+        """``Transform3D`` s of ``entity`` at several times in one call: ``translations[i]`` and the 3x3
+        ``rotations[i]`` at the i-th row of ``times`` (:meth:`time_columns`), each row what
+        ``rr.Transform3D(translation=..., mat3x3=...)`` logs (float32; the matrix stored column by column).
+        The columns are built with pyarrow directly: ``rr.Transform3D.columns`` costs more than the send."""
+        if not len(translations):
+            return
+        descriptors, types = _transform_columns()
+        count = len(translations)
+        offsets = pa.array(np.arange(count + 1, dtype=np.int32))
+        flat = (
+            np.asarray(translations, np.float32).reshape(count, 3).ravel(),
+            np.asarray(rotations, np.float32).reshape(count, 3, 3).transpose(0, 2, 1).ravel(),
+        )
+        columns = [
+            _Column(descriptor, pa.ListArray.from_arrays(offsets, _fixed_lists(values, kind.value_type), type=kind))
+            for descriptor, kind, values in zip(descriptors, types, flat, strict=True)
+        ]
+        self.stream.send_columns(self._at(entity), indexes=times, columns=columns)
 
     def text(self, entity: str, text: str, *, warn: bool = False, static: bool = False) -> None:
         """A line of a text log, level INFO or WARN."""
@@ -301,6 +332,38 @@ class Recording:
         self.stream.log(
             self._at(entity), rr.Points3D(positions, radii=radius, colors=colours, labels=labels), static=static
         )
+
+
+class _Column:
+    """A component column for ``send_columns``: its descriptor and its arrow array (one list per row)."""
+
+    __slots__ = ("array", "descriptor")
+
+    def __init__(self, descriptor: Any, array: pa.Array) -> None:
+        self.descriptor, self.array = descriptor, array
+
+    def component_descriptor(self) -> Any:
+        return self.descriptor
+
+    def as_arrow_array(self) -> pa.Array:
+        return self.array
+
+
+@functools.cache
+def _transform_columns() -> tuple[tuple[Any, Any], tuple[pa.ListType, pa.ListType]]:
+    """The descriptors and arrow types of ``Transform3D``'s translation and mat3x3 columns, as rerun
+    builds them."""
+    columns = list(rr.Transform3D.columns(translation=np.zeros((1, 3)), mat3x3=np.eye(3)[None]))
+    by_name = {column.component_descriptor().component: column for column in columns}
+    ordered = [by_name["Transform3D:translation"], by_name["Transform3D:mat3x3"]]
+    descriptors = tuple(column.component_descriptor() for column in ordered)
+    types = tuple(column.as_arrow_array().type for column in ordered)
+    return descriptors, types  # type: ignore[return-value]
+
+
+def _fixed_lists(values: np.ndarray, kind: pa.FixedSizeListType) -> pa.FixedSizeListArray:
+    """``values`` (flat) as arrow fixed-size lists of ``kind``."""
+    return pa.FixedSizeListArray.from_arrays(pa.array(values), type=kind)
 
 
 def _disk_full(path: Path) -> bool:
