@@ -238,19 +238,26 @@ class Recording:
         """The run recorder's timelines at several frames, for :meth:`scalar_columns` and
         :meth:`transform_columns`: ``frames`` on the ``frame`` sequence, ``seconds`` on ``time``, and
         ``log_ns`` (nanoseconds since the epoch, when given) on ``log_time``, the wall clock ``rr.log``
-        stamps each call with."""
-        columns = [rr.TimeColumn("frame", sequence=frames), rr.TimeColumn("time", duration=seconds)]
+        stamps each call with. (Given as arrays: rerun converts lists value by value; the seconds are rounded
+        to nanoseconds as ``set_time`` rounds them.)"""
+        nanoseconds = np.array([round(1e9 * float(s)) for s in seconds], np.int64).astype("timedelta64[ns]")
+        columns = [
+            rr.TimeColumn("frame", sequence=np.asarray(frames, np.int64)),
+            rr.TimeColumn("time", duration=nanoseconds),
+        ]
         if log_ns is not None:
             columns.append(rr.TimeColumn("log_time", timestamp=np.asarray(log_ns, "datetime64[ns]")))
         return columns
 
     def scalar_columns(self, entity: str, values: Sequence[float], times: Any) -> None:
         """Points of the time series ``entity`` at several times in one call: ``values[i]`` at the i-th row
-        of ``times`` (:meth:`time_columns`)."""
+        of ``times`` (:meth:`time_columns`), each row what ``rr.Scalars(value)`` logs. The column is built
+        with pyarrow directly, as :meth:`transform_columns` does."""
         if len(values):
-            self.stream.send_columns(
-                self._at(entity), indexes=times, columns=rr.Scalars.columns(scalars=np.asarray(values))
-            )
+            (descriptor,), (kind,) = _columns_of("scalars")
+            values = pa.array(np.asarray(values, np.float64), type=kind.value_type)
+            column = _Column(descriptor, pa.ListArray.from_arrays(_offsets(len(values)), values, type=kind))
+            self.stream.send_columns(self._at(entity), indexes=times, columns=[column])
 
     def transform_columns(
         self, entity: str, translations: Sequence[np.ndarray], rotations: Sequence[np.ndarray], times: Any
@@ -261,9 +268,9 @@ class Recording:
         The columns are built with pyarrow directly: ``rr.Transform3D.columns`` costs more than the send."""
         if not len(translations):
             return
-        descriptors, types = _transform_columns()
+        descriptors, types = _columns_of("transform")
         count = len(translations)
-        offsets = pa.array(np.arange(count + 1, dtype=np.int32))
+        offsets = _offsets(count)
         flat = (
             np.asarray(translations, np.float32).reshape(count, 3).ravel(),
             np.asarray(rotations, np.float32).reshape(count, 3, 3).transpose(0, 2, 1).ravel(),
@@ -350,15 +357,24 @@ class _Column:
 
 
 @functools.cache
-def _transform_columns() -> tuple[tuple[Any, Any], tuple[pa.ListType, pa.ListType]]:
-    """The descriptors and arrow types of ``Transform3D``'s translation and mat3x3 columns, as rerun
-    builds them."""
-    columns = list(rr.Transform3D.columns(translation=np.zeros((1, 3)), mat3x3=np.eye(3)[None]))
+def _columns_of(archetype: str) -> tuple[tuple[Any, ...], tuple[pa.ListType, ...]]:
+    """The descriptors and arrow types of the columns rerun builds for an archetype: ``scalars``
+    (``Scalars:scalars``) or ``transform`` (``Transform3D:translation``, ``Transform3D:mat3x3``)."""
+    if archetype == "scalars":
+        columns, names = rr.Scalars.columns(scalars=np.zeros(1)), ["Scalars:scalars"]
+    else:
+        columns = rr.Transform3D.columns(translation=np.zeros((1, 3)), mat3x3=np.eye(3)[None])
+        names = ["Transform3D:translation", "Transform3D:mat3x3"]
     by_name = {column.component_descriptor().component: column for column in columns}
-    ordered = [by_name["Transform3D:translation"], by_name["Transform3D:mat3x3"]]
-    descriptors = tuple(column.component_descriptor() for column in ordered)
-    types = tuple(column.as_arrow_array().type for column in ordered)
-    return descriptors, types  # type: ignore[return-value]
+    descriptors = tuple(by_name[name].component_descriptor() for name in names)
+    types = tuple(by_name[name].as_arrow_array().type for name in names)
+    return descriptors, types
+
+
+@functools.cache
+def _offsets(count: int) -> pa.Array:
+    """The list offsets of ``count`` rows of one value each."""
+    return pa.array(np.arange(count + 1, dtype=np.int32))
 
 
 def _fixed_lists(values: np.ndarray, kind: pa.FixedSizeListType) -> pa.FixedSizeListArray:

@@ -1,6 +1,7 @@
 """The targets' poses sent in batches (``world/targets/<target>``'s ``Transform3D``, :mod:`ar_anchor.viz.series`)
-make the same recording as one ``rr.log`` per target and frame: read back, the files hold the same values at
-the same times, in the same order where two share a time."""
+make the same recording as one ``rr.log`` per target and frame, and the metrics' columns built with pyarrow
+the same as rerun's own (``rr.Scalars.columns``): read back, the files hold the same values at the same
+times, in the same order where two share a time."""
 
 from __future__ import annotations
 
@@ -43,13 +44,21 @@ def tracked() -> tuple[CameraModel, list]:
 
 def _record(path: Path, camera: CameraModel, pairs: list, settings: RecordingConfig, *, batched: bool) -> list[Path]:
     recorder = RerunRecorder(path, camera=camera, settings=settings)
-    if not batched:  # the recorder as it was: each target's pose logged on its own frame, one call each
-        recording = recorder.recording
+    if not batched:  # the recorder as it was: each target's pose logged on its own frame, one call each;
+        recording = recorder.recording  # the metrics in batches built by rerun's own columns
 
         def log_now(entity: str, translation: np.ndarray, rotation: np.ndarray) -> None:
             recording.log(entity, rr.Transform3D(translation=translation, mat3x3=rotation))
 
+        def time_columns(*, frames, seconds, log_ns=None) -> list[rr.TimeColumn]:
+            return [rr.TimeColumn("frame", sequence=frames), rr.TimeColumn("time", duration=seconds)]
+
+        def scalar_columns(entity: str, values, times) -> None:
+            columns = rr.Scalars.columns(scalars=np.asarray(values))
+            recording.stream.send_columns(recording._at(entity), indexes=times, columns=columns)
+
         recorder.series.transform = log_now  # type: ignore[method-assign]
+        recording.time_columns, recording.scalar_columns = time_columns, scalar_columns  # type: ignore[method-assign]
     for frame, result in pairs:
         recorder.log_frame(frame, result, stages={"output_ms": 1.0})
     recorder.close()
@@ -112,7 +121,7 @@ def test_the_same_with_frames_that_share_a_time_and_a_target_gone_at_it(tmp_path
     # given frames two by two at the same time: a target gone on the second is cleared at the time its last
     # pose has (rerun breaks the tie by arrival: the clear must come after it, as it did)
     camera, pairs = tracked
-    paired = [(dataclasses.replace(frame, timestamp_ns=frame.index // 2 * 66_000_000), r) for frame, r in pairs]
+    paired = [(dataclasses.replace(frame, timestamp_ns=frame.index // 2 * 66_666_667), r) for frame, r in pairs]
     gone_at_a_tie = [
         index
         for index in range(1, len(pairs))
