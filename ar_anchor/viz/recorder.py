@@ -36,9 +36,11 @@ edges (logged once in ``events``), while the image and its 2D detections stay in
 other targets are placed from it, so the projection onto the frame stays right (their ``world`` places are
 then relative to that held camera).
 
-The ``metrics/*`` series and the targets' poses (``world/targets/<target>``'s ``Transform3D``) are sent
-every ``metrics_every`` frames, one call per entity holding every frame's value (:mod:`.series`: a live
-viewer sees them up to that many frames late); the rest of the 3D scene and the images every frame.
+The ``metrics/*`` series are sent every ``metrics_every`` frames, one call per series holding every frame's
+value (:mod:`.series`: a live viewer sees them up to that many frames late); so are the targets' poses
+(``world/targets/<target>``'s ``Transform3D``, one call per target) when no viewer watches (a file alone),
+and with a viewer each frame's, so that its AR overlay stays on the frame's image; the rest of the 3D scene
+and the images every frame.
 
 A target that is gone (no longer in a frame's results) is cleared once, on that frame, from every
 entity above that is its own; it is drawn again when it comes back. The anchor's shape is the
@@ -146,7 +148,9 @@ class RerunRecorder:
             recording_id=recording_id,
             root=self.root,
         )
-        self.series = SeriesBuffer(self.recording, self.settings.metrics_every)
+        # a viewer watching live gets each frame's poses at once (its AR overlay on the frame's image)
+        poses_at_once = self.recording.viewer_url is not None
+        self.series = SeriesBuffer(self.recording, self.settings.metrics_every, poses_at_once=poses_at_once)
         self._part_started = time.monotonic()
         self._part_media_ns: int | None = None  # the first frame's timestamp in the current file
         self.anchor: TargetId | None = None

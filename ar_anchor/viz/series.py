@@ -8,10 +8,11 @@ building; sending N frames' rows in one costs about what one frame's does). :cla
 values with the frame they belong to and sends each entity's values of the last ``every`` frames in one
 ``send_columns``: the recording holds every frame's value at that frame's ``frame`` and ``time`` (a pose
 also on ``log_time``, which ``rr.log`` stamps each call with: the wall clock when its frame was logged), and
-a live viewer sees them up to ``every`` frames late. Rerun orders data by their time, not by when they
-arrive, so a clear logged meanwhile (a target gone) still applies from its own frame on; only where the
-clear's time is that of a value kept (frames at the same time) does the order of arrival decide, and those
-values are sent before it (:meth:`SeriesBuffer.clearing`).
+a live viewer sees them up to ``every`` frames late (a pose is sent on its own frame instead where a viewer
+watches: ``poses_at_once``). Rerun orders data by their time, not by when they arrive, so a clear logged
+meanwhile (a target gone) still applies from its own frame on; only where the clear's time is that of a
+value kept (frames at the same time) does the order of arrival decide, and those values are sent before it
+(:meth:`SeriesBuffer.clearing`).
 """
 
 from __future__ import annotations
@@ -35,11 +36,17 @@ class SeriesBuffer:
     :meth:`at` sets the frame (its ``frame`` sequence number and ``time`` in seconds) that :meth:`add` and
     :meth:`transform` file values under; :meth:`flush` sends what is kept (also done by :meth:`at` once
     ``every`` frames are kept, and due before the recording's file changes or closes).
+
+    ``poses_at_once``: each pose is sent on its own frame instead (one call per entity and frame, as
+    ``rr.log``), for a recording a viewer watches live: there a pose kept back would be drawn on an image
+    up to ``every`` frames newer (the AR overlay trailing its marker).
     """
 
-    def __init__(self, recording: Recording, every: int) -> None:
+    def __init__(self, recording: Recording, every: int, *, poses_at_once: bool = False) -> None:
         self.recording = recording
         self.every = max(1, int(every))
+        self.poses_at_once = poses_at_once
+        self._now: Any = None  # the current frame's time columns, for poses sent at once
         self._frames: list[int] = []  # the frames kept, in order
         self._seconds: list[float] = []
         self._log_ns: list[int] = []  # the wall clock when each frame was logged (rerun's ``log_time``)
@@ -53,6 +60,7 @@ class SeriesBuffer:
         self._frames.append(int(frame))
         self._seconds.append(float(seconds))
         self._log_ns.append(time.time_ns())
+        self._now = None
 
     def add(self, entity: str, value: float | None) -> None:
         """One point of the series ``entity`` at the current frame; None and non-finite values are skipped."""
@@ -65,6 +73,13 @@ class SeriesBuffer:
     def transform(self, entity: str, translation: np.ndarray, rotation: np.ndarray) -> None:
         """``entity``'s ``Transform3D`` (``translation``, 3x3 ``rotation``) at the current frame."""
         if not self._frames:
+            return
+        if self.poses_at_once:
+            if self._now is None:
+                self._now = self.recording.time_columns(
+                    frames=self._frames[-1:], seconds=self._seconds[-1:], log_ns=self._log_ns[-1:]
+                )
+            self.recording.transform_columns(entity, [translation], [rotation], self._now)
             return
         rows, translations, rotations = self._poses.setdefault(entity, ([], [], []))
         rows.append(len(self._frames) - 1)

@@ -19,7 +19,9 @@ from ar_anchor.config import RecordingConfig, demo_config
 from ar_anchor.sources.synthetic import SyntheticSource
 from ar_anchor.synthetic import demo_scene
 from ar_anchor.synthetic.trajectory import Trajectory
+from ar_anchor.viz import recorder as recorder_module
 from ar_anchor.viz.recorder import RerunRecorder
+from ar_anchor.viz.sinks import Recording
 
 TIMELINES = ("frame", "time")
 
@@ -42,8 +44,12 @@ def tracked() -> tuple[CameraModel, list]:
     return scene.camera, pairs
 
 
-def _record(path: Path, camera: CameraModel, pairs: list, settings: RecordingConfig, *, batched: bool) -> list[Path]:
+def _record(
+    path: Path, camera: CameraModel, pairs: list, settings: RecordingConfig, *, batched: bool, at_once: bool = False
+) -> list[Path]:
     recorder = RerunRecorder(path, camera=camera, settings=settings)
+    assert not recorder.series.poses_at_once  # (a file alone: the poses are kept for the batches)
+    recorder.series.poses_at_once = at_once
     if not batched:  # the recorder as it was: each target's pose logged on its own frame, one call each;
         recording = recorder.recording  # the metrics in batches built by rerun's own columns
 
@@ -96,9 +102,9 @@ def _time(batch, timeline: str, row: int) -> int:
     return batch.column(timeline).cast("int64")[row].as_py()
 
 
-def _compare(tmp_path: Path, camera, pairs, settings: RecordingConfig) -> None:
+def _compare(tmp_path: Path, camera, pairs, settings: RecordingConfig, *, at_once: bool = False) -> None:
     old = _record(tmp_path / "old" / "r.rrd", camera, pairs, settings, batched=False)
-    new = _record(tmp_path / "new" / "r.rrd", camera, pairs, settings, batched=True)
+    new = _record(tmp_path / "new" / "r.rrd", camera, pairs, settings, batched=True, at_once=at_once)
     assert [part.name for part in old] == [part.name for part in new]
     targets = 0
     for old_part, new_part in zip(old, new):
@@ -134,3 +140,43 @@ def test_the_same_with_frames_that_share_a_time_and_a_target_gone_at_it(tmp_path
 def test_the_same_in_a_new_part_every_frame(tmp_path, tracked):
     camera, pairs = tracked
     _compare(tmp_path, camera, pairs[:8], RecordingConfig(image_every=0, metrics_every=10, part_minutes=1e-9))
+
+
+def test_the_same_with_each_frames_poses_sent_at_once(tmp_path, tracked):
+    camera, pairs = tracked
+    _compare(tmp_path, camera, pairs, RecordingConfig(image_every=0, metrics_every=4), at_once=True)
+
+
+class _Watched(Recording):
+    """A recording a viewer watches (its URL; no sink: nothing listens there)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.viewer_url = "rerun+http://127.0.0.1:9/proxy"
+
+
+def test_a_viewer_watching_gets_each_frames_poses_on_that_frame(tmp_path, tracked, monkeypatch):
+    # given a recording a viewer watches, and the metrics sent every 10 frames
+    camera, pairs = tracked
+    monkeypatch.setattr(recorder_module, "Recording", _Watched)
+    recorder = RerunRecorder(tmp_path / "r.rrd", camera=camera, settings=RecordingConfig(image_every=0))
+    sent: list[tuple[int, str, list[int]]] = []
+    transform_columns = recorder.recording.transform_columns
+
+    def spy(entity, translations, rotations, times) -> None:
+        sent.append((index, entity, times[0].as_arrow_array().to_pylist()))
+        transform_columns(entity, translations, rotations, times)
+
+    recorder.recording.transform_columns = spy
+    placed = 0
+    for index, (frame, result) in enumerate(pairs):
+        recorder.log_frame(frame, result)
+        # then every target but the anchor (from the first seen on, the camera is placed) was sent on its
+        # frame, one call each, its row alone
+        now = [(entity, rows) for at, entity, rows in sent if at == index]
+        targets = [name for name in result.targets if name != recorder.anchor]
+        assert len(now) == (len(targets) if recorder.anchor is not None else 0)
+        assert all(rows == [frame.index] for _, rows in now)
+        placed += len(now)
+    recorder.close()
+    assert placed and len(sent) == placed  # (nothing kept for the end)
