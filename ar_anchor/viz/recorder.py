@@ -37,10 +37,10 @@ other targets are placed from it, so the projection onto the frame stays right (
 then relative to that held camera).
 
 The ``metrics/*`` series are sent every ``metrics_every`` frames, one call per series holding every frame's
-value (:mod:`.series`: a live viewer sees them up to that many frames late); so are the targets' poses
-(``world/targets/<target>``'s ``Transform3D``, one call per target) when no viewer watches (a file alone),
-and with a viewer each frame's, so that its AR overlay stays on the frame's image; the rest of the 3D scene
-and the images every frame.
+value (:mod:`.series`: a live viewer sees them up to that many frames late); so are the camera's and the
+targets' poses (the ``Transform3D`` of ``world/camera`` and ``world/targets/<target>``, one call per entity)
+when no viewer watches (a file alone), and with a viewer each frame's, so that its AR overlay stays on the
+frame's image; the rest of the 3D scene and the images every frame.
 
 A target that is gone (no longer in a frame's results) is cleared once, on that frame, from every
 entity above that is its own; it is drawn again when it comes back. The anchor's shape is the
@@ -507,9 +507,7 @@ class RerunRecorder:
     def _log_camera(self, world_from_camera: Pose, length_m: float) -> None:
         """``world/camera``'s pose (its translation is the camera centre C = -R^T t) and its trajectory."""
         self._world_from_camera = world_from_camera
-        self.recording.log(
-            "world/camera", rr.Transform3D(translation=world_from_camera.tvec, mat3x3=world_from_camera.rotation)
-        )
+        self.series.transform("world/camera", world_from_camera.tvec, world_from_camera.rotation)  # in batches
         self._trajectory.append(world_from_camera.tvec.copy())
         del self._trajectory[:-_TRAJECTORY_POINTS]
         if len(self._trajectory) >= 2:

@@ -171,11 +171,14 @@ def test_a_viewer_watching_gets_each_frames_poses_on_that_frame(tmp_path, tracke
     placed = 0
     for index, (frame, result) in enumerate(pairs):
         recorder.log_frame(frame, result)
-        # then every target but the anchor (from the first seen on, the camera is placed) was sent on its
-        # frame, one call each, its row alone
+        # then the camera (placed by the anchor in view) and every target but the anchor (placed from the
+        # camera, from the first frame placing it on) were sent on the frame, one call each, its row alone
         now = [(entity, rows) for at, entity, rows in sent if at == index]
         targets = [name for name in result.targets if name != recorder.anchor]
-        assert len(now) == (len(targets) if recorder.anchor is not None else 0)
+        assert [entity for entity, _ in now if entity == "world/camera"] == ["world/camera"] * (
+            recorder.anchor in result.targets
+        )
+        assert len(now) == (len(targets) if recorder.anchor is not None else 0) + (recorder.anchor in result.targets)
         assert all(rows == [frame.index] for _, rows in now)
         placed += len(now)
     recorder.close()
