@@ -37,10 +37,11 @@ other targets are placed from it, so the projection onto the frame stays right (
 then relative to that held camera).
 
 The ``metrics/*`` series are sent every ``metrics_every`` frames, one call per series holding every frame's
-value (:mod:`.series`: a live viewer sees them up to that many frames late); so are the camera's and the
-targets' poses (the ``Transform3D`` of ``world/camera`` and ``world/targets/<target>``, one call per entity)
-when no viewer watches (a file alone), and with a viewer each frame's, so that its AR overlay stays on the
-frame's image; the rest of the 3D scene and the images every frame.
+value (:mod:`.series`: a live viewer sees them up to that many frames late). So is what is logged each frame
+above when no viewer watches (a file alone): the poses of ``world/camera`` and ``world/targets/<target>``, the
+image's ``markers``, ``corners`` and board points, ``world/camera_trajectory``, ``labels``, ``hypotheses``,
+``truth_camera`` and ``causal``, one call per entity; with a viewer they go each frame, so that its AR overlay
+stays on the frame's image. The images, events, target shapes and clears go when they happen.
 
 A target that is gone (no longer in a frame's results) is cleared once, on that frame, from every
 entity above that is its own; it is drawn again when it comes back. The anchor's shape is the
@@ -148,9 +149,9 @@ class RerunRecorder:
             recording_id=recording_id,
             root=self.root,
         )
-        # a viewer watching live gets each frame's poses at once (its AR overlay on the frame's image)
-        poses_at_once = self.recording.viewer_url is not None
-        self.series = SeriesBuffer(self.recording, self.settings.metrics_every, poses_at_once=poses_at_once)
+        # a viewer watching live gets each frame's scene at once (its AR overlay on the frame's image)
+        at_once = self.recording.viewer_url is not None
+        self.series = SeriesBuffer(self.recording, self.settings.metrics_every, at_once=at_once)
         self._part_started = time.monotonic()
         self._part_media_ns: int | None = None  # the first frame's timestamp in the current file
         self.anchor: TargetId | None = None
@@ -277,11 +278,16 @@ class RerunRecorder:
         self._drawn.setdefault(name, set()).add(entity)
         return entity
 
+    def _clear(self, entity: str) -> None:
+        """Clear ``entity`` (logged through :attr:`series`) from this frame on."""
+        self.series.clearing([entity])
+        self.recording.clear(entity)
+
     def _clear_gone(self, result: FrameResult) -> None:
         """Clear, once, the entities of every target drawn before that is not in this frame's results."""
         for name in [name for name in self._drawn if name not in result.targets]:
             entities = sorted(self._drawn.pop(name))
-            self.series.clearing(entities)  # (its values kept at the clear's time go out before it)
+            self.series.clearing(entities, recursive=True)  # (its values kept at the clear's time go out first)
             for entity in entities:
                 self.recording.clear(entity, recursive=True)
                 if entity == f"world/targets/{entity_name(name)}":
@@ -379,9 +385,9 @@ class RerunRecorder:
             radii.append(1.0)
         quads = np.asarray(result.detections.corners, np.float64).reshape(-1, 4, 2)
         strips = (np.concatenate([quads, quads[:, :1]], axis=1) + 0.5) * scale  # (N, 5, 2), one array
-        self.recording.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=radii))
+        self.series.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=radii))
         corners = np.asarray(result.detections.corners.reshape(-1, 2), np.float64)
-        self.recording.image_points(f"{IMAGE}/corners", corners, radius=1.5, colours=[(255, 0, 255)], scale=scale)
+        self.series.log(f"{IMAGE}/corners", self.recording.image_points_data(corners, 1.5, [(255, 0, 255)], scale))
         for name, target in result.targets.items():
             if not name.is_board:
                 continue
@@ -397,7 +403,7 @@ class RerunRecorder:
                 ("outliers", outliers, 3.5, (255, 40, 40)),
             ):
                 points = np.asarray(points, np.float64)
-                self.recording.image_points(f"{path}/{entity}", points, radius=radius, colours=[colour], scale=scale)
+                self.series.log(f"{path}/{entity}", self.recording.image_points_data(points, radius, [colour], scale))
 
     def _choose_anchor(self, result: FrameResult) -> None:
         """The first target seen (boards first) anchors the 3D view, for the whole run; its static shape
@@ -444,12 +450,9 @@ class RerunRecorder:
             return
         anchor = result.targets.get(self.anchor)
         if truth is not None and self.anchor in truth:
-            self.recording.points3d(
-                "world/truth_camera",
-                np.asarray([truth[self.anchor].camera_centre()]),
-                radius=0.005,
-                colours=[(255, 255, 255)],
-                labels=["true camera"],
+            centre = np.asarray([truth[self.anchor].camera_centre()])
+            self.series.log(
+                "world/truth_camera", rr.Points3D(centre, radii=0.005, colors=[(255, 255, 255)], labels=["true camera"])
             )
         if anchor is not None:
             self._log_camera(anchor.pose.inverse(), anchor.length_m)
@@ -491,10 +494,10 @@ class RerunRecorder:
         the ids already."""
         if not labels:
             if self._labelled:
-                self.recording.clear("world/labels")
+                self._clear("world/labels")
                 self._labelled = False
             return
-        self.recording.log(
+        self.series.log(
             "world/labels",
             rr.Points3D(
                 np.array([position for _, position, _ in labels]),
@@ -511,7 +514,7 @@ class RerunRecorder:
         self._trajectory.append(world_from_camera.tvec.copy())
         del self._trajectory[:-_TRAJECTORY_POINTS]
         if len(self._trajectory) >= 2:
-            self.recording.log(
+            self.series.log(
                 "world/camera_trajectory",
                 rr.LineStrips3D([np.asarray(self._trajectory)], colors=[(255, 210, 60)], radii=[length_m / 80]),
             )
@@ -538,10 +541,10 @@ class RerunRecorder:
                 radii.append(np.full(len(shape), target.length_m / 120, np.float32))
         if strips:
             lines = rr.LineStrips3D(np.concatenate(strips), colors=np.concatenate(colours), radii=np.concatenate(radii))
-            self.recording.log("world/hypotheses", lines)
+            self.series.log("world/hypotheses", lines)
             self._hypotheses_drawn = True
         elif self._hypotheses_drawn:
-            self.recording.clear("world/hypotheses")
+            self._clear("world/hypotheses")
             self._hypotheses_drawn = False
 
     def _log_causal(self, result: FrameResult, world_from_camera: Pose) -> None:
@@ -565,10 +568,10 @@ class RerunRecorder:
             colours.extend(_CAUSAL_COLOURS)
         if origins:
             arrows = rr.Arrows3D(origins=np.array(origins), vectors=np.array(vectors), colors=np.array(colours))
-            self.recording.log("world/causal", arrows)
+            self.series.log("world/causal", arrows)
             self._causal_drawn = True
         elif self._causal_drawn:
-            self.recording.clear("world/causal")
+            self._clear("world/causal")
             self._causal_drawn = False
 
     def close(self, timeout_s: float | None = None) -> None:

@@ -281,6 +281,24 @@ class Recording:
         ]
         self.stream.send_columns(self._at(entity), indexes=times, columns=columns)
 
+    @staticmethod
+    def component_arrays(data: Any) -> list[tuple[Any, pa.Array]]:
+        """An archetype's components as ``rr.log`` sends them: (descriptor, arrow array) each, for
+        :meth:`rows_columns`."""
+        return [(batch.component_descriptor(), batch.as_arrow_array()) for batch in data.as_component_batches()]
+
+    def rows_columns(self, entity: str, rows: Sequence[list[tuple[Any, pa.Array]]], times: Any) -> None:
+        """Several rows of one archetype at ``entity`` in one call: ``rows[i]`` (:meth:`component_arrays`, the
+        same components in every row) at the i-th row of ``times`` (:meth:`time_columns`)."""
+        if not len(rows):
+            return
+        columns = []
+        for index, (descriptor, _) in enumerate(rows[0]):
+            arrays = [row[index][1] for row in rows]
+            offsets = pa.array(np.cumsum([0, *map(len, arrays)], dtype=np.int32))
+            columns.append(_Column(descriptor, pa.ListArray.from_arrays(offsets, pa.concat_arrays(arrays))))
+        self.stream.send_columns(self._at(entity), indexes=times, columns=columns)
+
     def text(self, entity: str, text: str, *, warn: bool = False, static: bool = False) -> None:
         """A line of a text log, level INFO or WARN."""
         level = rr.TextLogLevel.WARN if warn else rr.TextLogLevel.INFO
@@ -318,12 +336,15 @@ class Recording:
         static: bool = False,
     ) -> None:
         """Points on an image: OpenCV pixel coordinates (N, 2), on an image shown at ``scale``."""
+        self.stream.log(self._at(entity), self.image_points_data(pixels, radius, colours, scale), static=static)
+
+    @staticmethod
+    def image_points_data(pixels: np.ndarray, radius: float, colours: Sequence[Colour], scale: float) -> rr.Points2D:
+        """What :meth:`image_points` logs (for :meth:`~.series.SeriesBuffer.log`)."""
         pixels = np.asarray(pixels)
         if not np.issubdtype(pixels.dtype, np.floating):
             pixels = pixels.astype(np.float64)
-        self.stream.log(
-            self._at(entity), rr.Points2D((pixels + 0.5) * scale, radii=radius, colors=colours), static=static
-        )
+        return rr.Points2D((pixels + 0.5) * scale, radii=radius, colors=colours)
 
     def points3d(
         self,

@@ -1,7 +1,8 @@
-"""The targets' poses sent in batches (``world/targets/<target>``'s ``Transform3D``, :mod:`ar_anchor.viz.series`)
-make the same recording as one ``rr.log`` per target and frame, and the metrics' columns built with pyarrow
-the same as rerun's own (``rr.Scalars.columns``): read back, the files hold the same values at the same
-times, in the same order where two share a time."""
+"""The 3D scene and the detections sent in batches (the poses of ``world/camera`` and ``world/targets/<target>``,
+the image's points and outlines, labels, hypotheses..., :mod:`ar_anchor.viz.series`) make the same recording
+as one ``rr.log`` per entity and frame, and the metrics' columns built with pyarrow the same as rerun's own
+(``rr.Scalars.columns``): read back, the files hold the same values at the same times, in the same order
+where two share a time."""
 
 from __future__ import annotations
 
@@ -48,10 +49,11 @@ def _record(
     path: Path, camera: CameraModel, pairs: list, settings: RecordingConfig, *, batched: bool, at_once: bool = False
 ) -> list[Path]:
     recorder = RerunRecorder(path, camera=camera, settings=settings)
-    assert not recorder.series.poses_at_once  # (a file alone: the poses are kept for the batches)
-    recorder.series.poses_at_once = at_once
-    if not batched:  # the recorder as it was: each target's pose logged on its own frame, one call each;
+    assert not recorder.series.at_once  # (a file alone: the scene is kept for the batches)
+    recorder.series.at_once = at_once
+    if not batched:  # the recorder as it was: the scene logged on its own frame, one rr.log per entity;
         recording = recorder.recording  # the metrics in batches built by rerun's own columns
+        recorder.series.at_once = True
 
         def log_now(entity: str, translation: np.ndarray, rotation: np.ndarray) -> None:
             recording.log(entity, rr.Transform3D(translation=translation, mat3x3=rotation))
@@ -73,9 +75,11 @@ def _record(
 
 def _content(path: Path) -> tuple[dict, dict]:
     """What a file holds: for each entity and each time on a timeline (``frame``, ``time``; None: static),
-    the component values logged there, in the order rerun keeps them (by row id), and which timelines
+    the component values logged there, and the recursive clears of the entities above it at that time, in
+    the order rerun keeps them (by row id: it decides between two at the same time), and which timelines
     each entity's components are on."""
     values: dict[tuple, list] = defaultdict(list)
+    clears: dict[tuple, list] = defaultdict(list)  # (timeline, time) -> [(entity, row id)] of recursive clears
     timelines: dict[tuple[str, str], set[str]] = defaultdict(set)
     for chunk in RrdReader(path).stream().to_chunks():
         batch = chunk.to_record_batch()
@@ -94,44 +98,64 @@ def _content(path: Path) -> tuple[dict, dict]:
             places = [(timeline, _time(batch, timeline, row)) for timeline in TIMELINES if timeline in indexes]
             for place in places or [("static", None)]:
                 values[(chunk.entity_path, *place)].append((row_id, cells))
+                if ("Clear:is_recursive", [True]) in cells:
+                    clears[place].append((chunk.entity_path, row_id))
+    for (entity, *place), rows in values.items():
+        above = [(row_id, [("cleared above", path)]) for path, row_id in clears[tuple(place)] if _under(entity, path)]
+        rows += above
     ordered = {key: [cells for _, cells in sorted(rows)] for key, rows in values.items()}
     return ordered, dict(timelines)
+
+
+def _under(entity: str, above: str) -> bool:
+    return entity.startswith(above.rstrip("/") + "/")
 
 
 def _time(batch, timeline: str, row: int) -> int:
     return batch.column(timeline).cast("int64")[row].as_py()
 
 
-def _compare(tmp_path: Path, camera, pairs, settings: RecordingConfig, *, at_once: bool = False) -> None:
+def _compare(tmp_path: Path, camera, pairs, settings: RecordingConfig, *, at_once: bool = False) -> set[str]:
     old = _record(tmp_path / "old" / "r.rrd", camera, pairs, settings, batched=False)
     new = _record(tmp_path / "new" / "r.rrd", camera, pairs, settings, batched=True, at_once=at_once)
     assert [part.name for part in old] == [part.name for part in new]
-    targets = 0
+    entities: set[str] = set()
     for old_part, new_part in zip(old, new):
         (old_values, old_timelines), (new_values, new_timelines) = _content(old_part), _content(new_part)
         assert new_timelines == old_timelines  # log_time included: rr.log stamps it, the batches too
         assert sorted(new_values) == sorted(old_values)
         for key, cells in old_values.items():
             assert new_values[key] == cells, key
-        targets += sum(entity.startswith("/world/targets/") and entity.count("/") == 3 for entity, *_ in old_values)
-    assert targets  # (the poses compared were there)
+        entities.update(entity for entity, *_ in old_values)
+    assert any(entity.startswith("/world/targets/") and entity.count("/") == 3 for entity in entities)
+    return entities  # (the entities compared)
 
 
-def test_the_batched_poses_make_the_same_recording_as_one_call_each(tmp_path, tracked):
+@pytest.mark.parametrize("causal", [False, True])
+def test_the_batched_scene_makes_the_same_recording_as_one_call_each(tmp_path, tracked, causal):
     camera, pairs = tracked
-    settings = RecordingConfig(image_every=0, metrics_every=4)
-    _compare(tmp_path, camera, pairs, settings)
+    if causal:  # an offline replay's live filter beside it: its axes on some frames, none (cleared) on others
+        pairs = [
+            (frame, dataclasses.replace(r, causal_targets=[dict(r.targets), {}, None][frame.index % 3]))
+            for frame, r in pairs
+        ]
+    entities = _compare(tmp_path, camera, pairs, RecordingConfig(image_every=0, metrics_every=4))
+    kept = ["/world/camera", "/world/camera/image/boards/board_desk/inliers", "/world/labels", "/world/hypotheses"]
+    kept += ["/world/camera/image/markers", "/world/camera_trajectory", "/world/truth_camera"]
+    assert set(kept + ["/world/causal"] * causal) <= entities
 
 
-def test_the_same_with_frames_that_share_a_time_and_a_target_gone_at_it(tmp_path, tracked):
-    # given frames two by two at the same time: a target gone on the second is cleared at the time its last
-    # pose has (rerun breaks the tie by arrival: the clear must come after it, as it did)
+@pytest.mark.parametrize("first", [0, 1])
+def test_the_same_with_frames_that_share_a_time_and_a_target_gone_at_it(tmp_path, tracked, first):
+    # given frames two by two at the same time (from frame ``first``): a target gone on the second is cleared
+    # at the time its last pose has (rerun breaks the tie by arrival: the clear must come after it, as it did)
     camera, pairs = tracked
-    paired = [(dataclasses.replace(frame, timestamp_ns=frame.index // 2 * 66_666_667), r) for frame, r in pairs]
+    shared = [(frame.index + first) // 2 for frame, _ in pairs]
+    paired = [(dataclasses.replace(frame, timestamp_ns=at * 66_666_667), r) for (frame, r), at in zip(pairs, shared)]
     gone_at_a_tie = [
         index
         for index in range(1, len(pairs))
-        if index % 2 and set(pairs[index - 1][1].targets) - set(pairs[index][1].targets)
+        if shared[index] == shared[index - 1] and set(pairs[index - 1][1].targets) - set(pairs[index][1].targets)
     ]
     assert gone_at_a_tie
     _compare(tmp_path, camera, paired, RecordingConfig(image_every=0, metrics_every=5))
@@ -142,7 +166,7 @@ def test_the_same_in_a_new_part_every_frame(tmp_path, tracked):
     _compare(tmp_path, camera, pairs[:8], RecordingConfig(image_every=0, metrics_every=10, part_minutes=1e-9))
 
 
-def test_the_same_with_each_frames_poses_sent_at_once(tmp_path, tracked):
+def test_the_same_with_each_frames_scene_sent_at_once(tmp_path, tracked):
     camera, pairs = tracked
     _compare(tmp_path, camera, pairs, RecordingConfig(image_every=0, metrics_every=4), at_once=True)
 
@@ -155,7 +179,7 @@ class _Watched(Recording):
         self.viewer_url = "rerun+http://127.0.0.1:9/proxy"
 
 
-def test_a_viewer_watching_gets_each_frames_poses_on_that_frame(tmp_path, tracked, monkeypatch):
+def test_a_viewer_watching_gets_each_frames_scene_on_that_frame(tmp_path, tracked, monkeypatch):
     # given a recording a viewer watches, and the metrics sent every 10 frames
     camera, pairs = tracked
     monkeypatch.setattr(recorder_module, "Recording", _Watched)
@@ -168,6 +192,8 @@ def test_a_viewer_watching_gets_each_frames_poses_on_that_frame(tmp_path, tracke
         transform_columns(entity, translations, rotations, times)
 
     recorder.recording.transform_columns = spy
+    kept_rows: list[str] = []
+    recorder.recording.rows_columns = lambda entity, rows, times: kept_rows.append(entity)
     placed = 0
     for index, (frame, result) in enumerate(pairs):
         recorder.log_frame(frame, result)
@@ -182,4 +208,4 @@ def test_a_viewer_watching_gets_each_frames_poses_on_that_frame(tmp_path, tracke
         assert all(rows == [frame.index] for _, rows in now)
         placed += len(now)
     recorder.close()
-    assert placed and len(sent) == placed  # (nothing kept for the end)
+    assert placed and len(sent) == placed and not kept_rows  # (nothing kept for the end, nor in batches)
