@@ -105,6 +105,7 @@ _MEMBER_RADIUS = 0.5  # the outline of a marker drawn as part of its board (Fram
 _CAUSAL_COLOURS = [(255, 120, 120, 160), (120, 255, 120, 160), (120, 120, 255, 160)]  # x, y, z: pale
 _BRANCH_COLOURS = np.array([(90, 200, 255, 90), (255, 140, 60, 90)], np.uint8)  # the filter's branch 0, 1
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
+_NO_AXES = rr.TransformAxes3D(axis_length=0.0)  # a gone target's axes (see _clear_gone), built once
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
 IMAGE = "world/camera/image"  # the frame, under the camera's pinhole (where the viewer projects the 3D scene)
 OVERLAY_IMAGE = "camera/overlay"  # the annotated image (``overlay_images``), outside the projected world
@@ -293,7 +294,7 @@ class RerunRecorder:
                 if entity == f"world/targets/{entity_name(name)}":
                     # a cleared TransformAxes3D is drawn at the viewer's default length, from the world origin
                     # (long lines across the AR overlay): zero-length axes draw nothing until it comes back
-                    self.recording.log(f"{entity}/axes", rr.TransformAxes3D(axis_length=0.0))
+                    self.recording.log(f"{entity}/axes", _NO_AXES)
             if name != self.anchor:
                 self._shapes_logged.discard(name)  # drawn again when it comes back
 

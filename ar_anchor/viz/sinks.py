@@ -224,7 +224,7 @@ class Recording:
 
     def clear(self, entity: str, *, recursive: bool = False) -> None:
         """Clear ``entity`` (and its children when ``recursive``) from now on. Static data stays."""
-        self.stream.log(self._at(entity), rr.Clear(recursive=recursive))
+        self.stream.log(self._at(entity), _clear(recursive))
 
     def scalar(self, entity: str, value: float | None) -> None:
         """One point of the time series ``entity``; None and non-finite values are skipped."""
@@ -390,6 +390,12 @@ def _columns_of(archetype: str) -> tuple[tuple[Any, ...], tuple[pa.ListType, ...
     descriptors = tuple(by_name[name].component_descriptor() for name in names)
     types = tuple(by_name[name].as_arrow_array().type for name in names)
     return descriptors, types
+
+
+@functools.cache
+def _clear(recursive: bool) -> rr.Clear:
+    """``rr.Clear(recursive=recursive)``, built once (a gone target's clears are several a frame)."""
+    return rr.Clear(recursive=recursive)
 
 
 @functools.cache
