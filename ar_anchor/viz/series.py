@@ -47,7 +47,6 @@ class SeriesBuffer:
         self.recording = recording
         self.every = max(1, int(every))
         self.at_once = at_once
-        self._now: Any = None  # the current frame's time columns, for poses sent at once
         self._frames: list[int] = []  # the frames kept, in order
         self._seconds: list[float] = []
         self._log_ns: list[int] = []  # the wall clock when each frame was logged (rerun's ``log_time``)
@@ -62,7 +61,6 @@ class SeriesBuffer:
         self._frames.append(int(frame))
         self._seconds.append(float(seconds))
         self._log_ns.append(time.time_ns())
-        self._now = None
 
     def add(self, entity: str, value: float | None) -> None:
         """One point of the series ``entity`` at the current frame; None and non-finite values are skipped."""
@@ -77,11 +75,7 @@ class SeriesBuffer:
         if not self._frames:
             return
         if self.at_once:
-            if self._now is None:
-                self._now = self.recording.time_columns(
-                    frames=self._frames[-1:], seconds=self._seconds[-1:], log_ns=self._log_ns[-1:]
-                )
-            self.recording.transform_columns(entity, [translation], [rotation], self._now)
+            self.recording.transform(entity, translation, rotation)
             return
         rows, translations, rotations = self._poses.setdefault(entity, ([], [], []))
         rows.append(len(self._frames) - 1)

@@ -259,6 +259,10 @@ class Recording:
             column = _Column(descriptor, pa.ListArray.from_arrays(_offsets(len(values)), values, type=kind))
             self.stream.send_columns(self._at(entity), indexes=times, columns=[column])
 
+    def transform(self, entity: str, translation: np.ndarray, rotation: np.ndarray) -> None:
+        """A ``Transform3D``: ``translation`` and the 3x3 ``rotation``."""
+        self.stream.log(self._at(entity), rr.Transform3D(translation=translation, mat3x3=rotation))
+
     def transform_columns(
         self, entity: str, translations: Sequence[np.ndarray], rotations: Sequence[np.ndarray], times: Any
     ) -> None:
