@@ -202,7 +202,7 @@ class RerunRecorder:
         spike of 100-300 MB at every part)."""
         assert self.rrd_path is not None
         path = self.rrd_path.with_name(f"{self.rrd_path.stem}.part{len(self.parts) + 1}{self.rrd_path.suffix}")
-        self.series.flush()  # the metrics and poses kept so far belong to the file that ends
+        self.series.flush()  # what is kept so far (metrics, scene) belongs to the file that ends
         self.recording.next_file(path)
         self._part_started = time.monotonic()
         self._part_media_ns = None
