@@ -36,8 +36,12 @@ edges (logged once in ``events``), while the image and its 2D detections stay in
 other targets are placed from it, so the projection onto the frame stays right (their ``world`` places are
 then relative to that held camera).
 
-The ``metrics/*`` series are sent every ``metrics_every`` frames, one call per series holding every
-frame's value (:mod:`.series`); the 3D scene and images every frame.
+The ``metrics/*`` series are sent every ``metrics_every`` frames, one call per series holding every frame's
+value (:mod:`.series`: a live viewer sees them up to that many frames late). So is what is logged each frame
+above when no viewer watches (a file alone): the poses of ``world/camera`` and ``world/targets/<target>``, the
+image's ``markers``, ``corners`` and board points, ``world/camera_trajectory``, ``labels``, ``hypotheses``,
+``truth_camera`` and ``causal``, one call per entity; with a viewer they go each frame, so that its AR overlay
+stays on the frame's image. The images, events, target shapes and clears go when they happen.
 
 A target that is gone (no longer in a frame's results) is cleared once, on that frame, from every
 entity above that is its own; it is drawn again when it comes back. The anchor's shape is the
@@ -101,6 +105,7 @@ _MEMBER_RADIUS = 0.5  # the outline of a marker drawn as part of its board (Fram
 _CAUSAL_COLOURS = [(255, 120, 120, 160), (120, 255, 120, 160), (120, 120, 255, 160)]  # x, y, z: pale
 _BRANCH_COLOURS = np.array([(90, 200, 255, 90), (255, 140, 60, 90)], np.uint8)  # the filter's branch 0, 1
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
+_NO_AXES = rr.TransformAxes3D(axis_length=0.0)  # a gone target's axes (see _clear_gone), built once
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
 IMAGE = "world/camera/image"  # the frame, under the camera's pinhole (where the viewer projects the 3D scene)
 OVERLAY_IMAGE = "camera/overlay"  # the annotated image (``overlay_images``), outside the projected world
@@ -145,7 +150,9 @@ class RerunRecorder:
             recording_id=recording_id,
             root=self.root,
         )
-        self.series = SeriesBuffer(self.recording, self.settings.metrics_every)
+        # a viewer watching live gets each frame's scene at once (its AR overlay on the frame's image)
+        at_once = self.recording.viewer_url is not None
+        self.series = SeriesBuffer(self.recording, self.settings.metrics_every, at_once=at_once)
         self._part_started = time.monotonic()
         self._part_media_ns: int | None = None  # the first frame's timestamp in the current file
         self.anchor: TargetId | None = None
@@ -195,7 +202,7 @@ class RerunRecorder:
         spike of 100-300 MB at every part)."""
         assert self.rrd_path is not None
         path = self.rrd_path.with_name(f"{self.rrd_path.stem}.part{len(self.parts) + 1}{self.rrd_path.suffix}")
-        self.series.flush()  # the metrics kept so far belong to the file that ends
+        self.series.flush()  # what is kept so far (metrics, scene) belongs to the file that ends
         self.recording.next_file(path)
         self._part_started = time.monotonic()
         self._part_media_ns = None
@@ -272,15 +279,22 @@ class RerunRecorder:
         self._drawn.setdefault(name, set()).add(entity)
         return entity
 
+    def _clear(self, entity: str) -> None:
+        """Clear ``entity`` (logged through :attr:`series`) from this frame on."""
+        self.series.clearing([entity])
+        self.recording.clear(entity)
+
     def _clear_gone(self, result: FrameResult) -> None:
         """Clear, once, the entities of every target drawn before that is not in this frame's results."""
         for name in [name for name in self._drawn if name not in result.targets]:
-            for entity in sorted(self._drawn.pop(name)):
+            entities = sorted(self._drawn.pop(name))
+            self.series.clearing(entities, recursive=True)  # (its values kept at the clear's time go out first)
+            for entity in entities:
                 self.recording.clear(entity, recursive=True)
                 if entity == f"world/targets/{entity_name(name)}":
                     # a cleared TransformAxes3D is drawn at the viewer's default length, from the world origin
                     # (long lines across the AR overlay): zero-length axes draw nothing until it comes back
-                    self.recording.log(f"{entity}/axes", rr.TransformAxes3D(axis_length=0.0))
+                    self.recording.log(f"{entity}/axes", _NO_AXES)
             if name != self.anchor:
                 self._shapes_logged.discard(name)  # drawn again when it comes back
 
@@ -372,9 +386,9 @@ class RerunRecorder:
             radii.append(1.0)
         quads = np.asarray(result.detections.corners, np.float64).reshape(-1, 4, 2)
         strips = (np.concatenate([quads, quads[:, :1]], axis=1) + 0.5) * scale  # (N, 5, 2), one array
-        self.recording.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=radii))
+        self.series.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=radii))
         corners = np.asarray(result.detections.corners.reshape(-1, 2), np.float64)
-        self.recording.image_points(f"{IMAGE}/corners", corners, radius=1.5, colours=[(255, 0, 255)], scale=scale)
+        self.series.log(f"{IMAGE}/corners", self.recording.image_points_data(corners, 1.5, [(255, 0, 255)], scale))
         for name, target in result.targets.items():
             if not name.is_board:
                 continue
@@ -390,7 +404,7 @@ class RerunRecorder:
                 ("outliers", outliers, 3.5, (255, 40, 40)),
             ):
                 points = np.asarray(points, np.float64)
-                self.recording.image_points(f"{path}/{entity}", points, radius=radius, colours=[colour], scale=scale)
+                self.series.log(f"{path}/{entity}", self.recording.image_points_data(points, radius, [colour], scale))
 
     def _choose_anchor(self, result: FrameResult) -> None:
         """The first target seen (boards first) anchors the 3D view, for the whole run; its static shape
@@ -437,12 +451,9 @@ class RerunRecorder:
             return
         anchor = result.targets.get(self.anchor)
         if truth is not None and self.anchor in truth:
-            self.recording.points3d(
-                "world/truth_camera",
-                np.asarray([truth[self.anchor].camera_centre()]),
-                radius=0.005,
-                colours=[(255, 255, 255)],
-                labels=["true camera"],
+            centre = np.asarray([truth[self.anchor].camera_centre()])
+            self.series.log(
+                "world/truth_camera", rr.Points3D(centre, radii=0.005, colors=[(255, 255, 255)], labels=["true camera"])
             )
         if anchor is not None:
             self._log_camera(anchor.pose.inverse(), anchor.length_m)
@@ -457,10 +468,8 @@ class RerunRecorder:
             if name not in self._shapes_logged or any(e.kind == "group" for e in target.events):
                 self._log_shape(name, target, is_anchor=False)  # (a learned group's members changed: drawn anew)
             world_from_target = world_from_camera.compose(target.pose)
-            self.recording.log(
-                self._own(name, f"world/targets/{entity_name(name)}"),
-                rr.Transform3D(translation=world_from_target.tvec, mat3x3=world_from_target.rotation),
-            )
+            entity = self._own(name, f"world/targets/{entity_name(name)}")
+            self.series.transform(entity, world_from_target.tvec, world_from_target.rotation)  # sent in batches
             labels.append((name, world_from_target.tvec, target.length_m))
         self._log_labels(labels)
         if labels and not self._framed:
@@ -486,10 +495,10 @@ class RerunRecorder:
         the ids already."""
         if not labels:
             if self._labelled:
-                self.recording.clear("world/labels")
+                self._clear("world/labels")
                 self._labelled = False
             return
-        self.recording.log(
+        self.series.log(
             "world/labels",
             rr.Points3D(
                 np.array([position for _, position, _ in labels]),
@@ -502,13 +511,11 @@ class RerunRecorder:
     def _log_camera(self, world_from_camera: Pose, length_m: float) -> None:
         """``world/camera``'s pose (its translation is the camera centre C = -R^T t) and its trajectory."""
         self._world_from_camera = world_from_camera
-        self.recording.log(
-            "world/camera", rr.Transform3D(translation=world_from_camera.tvec, mat3x3=world_from_camera.rotation)
-        )
+        self.series.transform("world/camera", world_from_camera.tvec, world_from_camera.rotation)  # in batches
         self._trajectory.append(world_from_camera.tvec.copy())
         del self._trajectory[:-_TRAJECTORY_POINTS]
         if len(self._trajectory) >= 2:
-            self.recording.log(
+            self.series.log(
                 "world/camera_trajectory",
                 rr.LineStrips3D([np.asarray(self._trajectory)], colors=[(255, 210, 60)], radii=[length_m / 80]),
             )
@@ -535,10 +542,10 @@ class RerunRecorder:
                 radii.append(np.full(len(shape), target.length_m / 120, np.float32))
         if strips:
             lines = rr.LineStrips3D(np.concatenate(strips), colors=np.concatenate(colours), radii=np.concatenate(radii))
-            self.recording.log("world/hypotheses", lines)
+            self.series.log("world/hypotheses", lines)
             self._hypotheses_drawn = True
         elif self._hypotheses_drawn:
-            self.recording.clear("world/hypotheses")
+            self._clear("world/hypotheses")
             self._hypotheses_drawn = False
 
     def _log_causal(self, result: FrameResult, world_from_camera: Pose) -> None:
@@ -562,14 +569,14 @@ class RerunRecorder:
             colours.extend(_CAUSAL_COLOURS)
         if origins:
             arrows = rr.Arrows3D(origins=np.array(origins), vectors=np.array(vectors), colors=np.array(colours))
-            self.recording.log("world/causal", arrows)
+            self.series.log("world/causal", arrows)
             self._causal_drawn = True
         elif self._causal_drawn:
-            self.recording.clear("world/causal")
+            self._clear("world/causal")
             self._causal_drawn = False
 
     def close(self, timeout_s: float | None = None) -> None:
-        """Send the metrics kept, flush everything to the sinks and close the file (the .rrd is complete
+        """Send the metrics and poses kept, flush everything to the sinks and close the file (the .rrd is complete
         afterwards).
 
         The flush is bounded (``timeout_s``, default ``[recording] flush_timeout_s``): a viewer that went

@@ -16,6 +16,7 @@ are shifted by half a pixel here.
 from __future__ import annotations
 
 import errno
+import functools
 import logging
 import math
 import os
@@ -27,6 +28,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -222,7 +224,7 @@ class Recording:
 
     def clear(self, entity: str, *, recursive: bool = False) -> None:
         """Clear ``entity`` (and its children when ``recursive``) from now on. Static data stays."""
-        self.stream.log(self._at(entity), rr.Clear(recursive=recursive))
+        self.stream.log(self._at(entity), _clear(recursive))
 
     def scalar(self, entity: str, value: float | None) -> None:
         """One point of the time series ``entity``; None and non-finite values are skipped."""
@@ -230,18 +232,76 @@ class Recording:
             self.stream.log(self._at(entity), rr.Scalars(float(value)))
 
     @staticmethod
-    def time_columns(*, frames: Sequence[int], seconds: Sequence[float]) -> list[rr.TimeColumn]:
-        """The run recorder's timelines at several frames, for :meth:`scalar_columns`: ``frames`` on the
-        ``frame`` sequence, ``seconds`` on ``time``."""
-        return [rr.TimeColumn("frame", sequence=frames), rr.TimeColumn("time", duration=seconds)]
+    def time_columns(
+        *, frames: Sequence[int], seconds: Sequence[float], log_ns: Sequence[int] | None = None
+    ) -> list[rr.TimeColumn]:
+        """The run recorder's timelines at several frames, for :meth:`scalar_columns` and
+        :meth:`transform_columns`: ``frames`` on the ``frame`` sequence, ``seconds`` on ``time``, and
+        ``log_ns`` (nanoseconds since the epoch, when given) on ``log_time``, the wall clock ``rr.log``
+        stamps each call with. (Given as arrays: rerun converts lists value by value; the seconds are rounded
+        to nanoseconds as ``set_time`` rounds them.)"""
+        nanoseconds = np.array([round(1e9 * float(s)) for s in seconds], np.int64).astype("timedelta64[ns]")
+        columns = [
+            rr.TimeColumn("frame", sequence=np.asarray(frames, np.int64)),
+            rr.TimeColumn("time", duration=nanoseconds),
+        ]
+        if log_ns is not None:
+            columns.append(rr.TimeColumn("log_time", timestamp=np.asarray(log_ns, "datetime64[ns]")))
+        return columns
 
     def scalar_columns(self, entity: str, values: Sequence[float], times: Any) -> None:
         """Points of the time series ``entity`` at several times in one call: ``values[i]`` at the i-th row
-        of ``times`` (:meth:`time_columns`)."""
+        of ``times`` (:meth:`time_columns`), each row what ``rr.Scalars(value)`` logs. The column is built
+        with pyarrow directly, as :meth:`transform_columns` does."""
         if len(values):
-            self.stream.send_columns(
-                self._at(entity), indexes=times, columns=rr.Scalars.columns(scalars=np.asarray(values))
-            )
+            (descriptor,), (kind,) = _columns_of("scalars")
+            values = pa.array(np.asarray(values, np.float64), type=kind.value_type)
+            column = _Column(descriptor, pa.ListArray.from_arrays(_offsets(len(values)), values, type=kind))
+            self.stream.send_columns(self._at(entity), indexes=times, columns=[column])
+
+    def transform(self, entity: str, translation: np.ndarray, rotation: np.ndarray) -> None:
+        """A ``Transform3D``: ``translation`` and the 3x3 ``rotation``."""
+        self.stream.log(self._at(entity), rr.Transform3D(translation=translation, mat3x3=rotation))
+
+    def transform_columns(
+        self, entity: str, translations: Sequence[np.ndarray], rotations: Sequence[np.ndarray], times: Any
+    ) -> None:
+        """``Transform3D`` s of ``entity`` at several times in one call: ``translations[i]`` and the 3x3
+        ``rotations[i]`` at the i-th row of ``times`` (:meth:`time_columns`), each row what
+        ``rr.Transform3D(translation=..., mat3x3=...)`` logs (float32; the matrix stored column by column).
+        The columns are built with pyarrow directly: ``rr.Transform3D.columns`` costs more than the send."""
+        if not len(translations):
+            return
+        descriptors, types = _columns_of("transform")
+        count = len(translations)
+        offsets = _offsets(count)
+        flat = (
+            np.asarray(translations, np.float32).reshape(count, 3).ravel(),
+            np.asarray(rotations, np.float32).reshape(count, 3, 3).transpose(0, 2, 1).ravel(),
+        )
+        columns = [
+            _Column(descriptor, pa.ListArray.from_arrays(offsets, _fixed_lists(values, kind.value_type), type=kind))
+            for descriptor, kind, values in zip(descriptors, types, flat, strict=True)
+        ]
+        self.stream.send_columns(self._at(entity), indexes=times, columns=columns)
+
+    @staticmethod
+    def component_arrays(data: Any) -> list[tuple[Any, pa.Array]]:
+        """An archetype's components as ``rr.log`` sends them: (descriptor, arrow array) each, for
+        :meth:`rows_columns`."""
+        return [(batch.component_descriptor(), batch.as_arrow_array()) for batch in data.as_component_batches()]
+
+    def rows_columns(self, entity: str, rows: Sequence[list[tuple[Any, pa.Array]]], times: Any) -> None:
+        """Several rows of one archetype at ``entity`` in one call: ``rows[i]`` (:meth:`component_arrays`, the
+        same components in every row) at the i-th row of ``times`` (:meth:`time_columns`)."""
+        if not len(rows):
+            return
+        columns = []
+        for index, (descriptor, _) in enumerate(rows[0]):
+            arrays = [row[index][1] for row in rows]
+            offsets = pa.array(np.cumsum([0, *map(len, arrays)], dtype=np.int32))
+            columns.append(_Column(descriptor, pa.ListArray.from_arrays(offsets, pa.concat_arrays(arrays))))
+        self.stream.send_columns(self._at(entity), indexes=times, columns=columns)
 
     def text(self, entity: str, text: str, *, warn: bool = False, static: bool = False) -> None:
         """A line of a text log, level INFO or WARN."""
@@ -280,12 +340,15 @@ class Recording:
         static: bool = False,
     ) -> None:
         """Points on an image: OpenCV pixel coordinates (N, 2), on an image shown at ``scale``."""
+        self.stream.log(self._at(entity), self.image_points_data(pixels, radius, colours, scale), static=static)
+
+    @staticmethod
+    def image_points_data(pixels: np.ndarray, radius: float, colours: Sequence[Colour], scale: float) -> rr.Points2D:
+        """What :meth:`image_points` logs (for :meth:`~.series.SeriesBuffer.log`)."""
         pixels = np.asarray(pixels)
         if not np.issubdtype(pixels.dtype, np.floating):
             pixels = pixels.astype(np.float64)
-        self.stream.log(
-            self._at(entity), rr.Points2D((pixels + 0.5) * scale, radii=radius, colors=colours), static=static
-        )
+        return rr.Points2D((pixels + 0.5) * scale, radii=radius, colors=colours)
 
     def points3d(
         self,
@@ -301,6 +364,53 @@ class Recording:
         self.stream.log(
             self._at(entity), rr.Points3D(positions, radii=radius, colors=colours, labels=labels), static=static
         )
+
+
+class _Column:
+    """A component column for ``send_columns``: its descriptor and its arrow array (one list per row)."""
+
+    __slots__ = ("array", "descriptor")
+
+    def __init__(self, descriptor: Any, array: pa.Array) -> None:
+        self.descriptor, self.array = descriptor, array
+
+    def component_descriptor(self) -> Any:
+        return self.descriptor
+
+    def as_arrow_array(self) -> pa.Array:
+        return self.array
+
+
+@functools.cache
+def _columns_of(archetype: str) -> tuple[tuple[Any, ...], tuple[pa.ListType, ...]]:
+    """The descriptors and arrow types of the columns rerun builds for an archetype: ``scalars``
+    (``Scalars:scalars``) or ``transform`` (``Transform3D:translation``, ``Transform3D:mat3x3``)."""
+    if archetype == "scalars":
+        columns, names = rr.Scalars.columns(scalars=np.zeros(1)), ["Scalars:scalars"]
+    else:
+        columns = rr.Transform3D.columns(translation=np.zeros((1, 3)), mat3x3=np.eye(3)[None])
+        names = ["Transform3D:translation", "Transform3D:mat3x3"]
+    by_name = {column.component_descriptor().component: column for column in columns}
+    descriptors = tuple(by_name[name].component_descriptor() for name in names)
+    types = tuple(by_name[name].as_arrow_array().type for name in names)
+    return descriptors, types
+
+
+@functools.cache
+def _clear(recursive: bool) -> rr.Clear:
+    """``rr.Clear(recursive=recursive)``, built once (a gone target's clears are several a frame)."""
+    return rr.Clear(recursive=recursive)
+
+
+@functools.cache
+def _offsets(count: int) -> pa.Array:
+    """The list offsets of ``count`` rows of one value each."""
+    return pa.array(np.arange(count + 1, dtype=np.int32))
+
+
+def _fixed_lists(values: np.ndarray, kind: pa.FixedSizeListType) -> pa.FixedSizeListArray:
+    """``values`` (flat) as arrow fixed-size lists of ``kind``."""
+    return pa.FixedSizeListArray.from_arrays(pa.array(values), type=kind)
 
 
 def _disk_full(path: Path) -> bool:

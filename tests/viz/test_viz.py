@@ -218,7 +218,7 @@ def _result(index: int, names: list[str], camera, *, board: bool = False) -> Fra
 
 class _Spy:
     """Records the entities the recorder clears, per frame, where target shapes are logged, and what else
-    it logs (entity -> [(frame, data)])."""
+    it logs (entity -> [(frame, data)]; what is sent in batches under the frame it belongs to)."""
 
     def __init__(self, recorder: RerunRecorder) -> None:
         self.frame = -1
@@ -240,6 +240,20 @@ class _Spy:
             log(entity, data, static=static)
 
         recording.clear, recording.log = spy_clear, spy_log
+        transform = recorder.series.transform
+
+        def spy_transform(entity: str, translation, rotation) -> None:
+            self.logged.setdefault(entity, []).append((self.frame, (translation, rotation)))
+            transform(entity, translation, rotation)
+
+        recorder.series.transform = spy_transform
+        series_log = recorder.series.log
+
+        def spy_series_log(entity: str, data) -> None:
+            self.logged.setdefault(entity, []).append((self.frame, data))
+            series_log(entity, data)
+
+        recorder.series.log = spy_series_log
 
 
 def test_a_gone_target_is_cleared_once_and_drawn_again_when_it_comes_back(tmp_path, camera):
