@@ -336,8 +336,9 @@ class RecordingConfig:
     )
     metrics_every: int = key(
         10,
-        "send the plotted metrics (metrics/*) every N frames, each series' N values in one call: every "
-        "frame's value is kept; a live viewer shows them up to N frames late (1: every frame)",
+        "send the plotted metrics (metrics/*), and in a recording no viewer watches each frame's 3D scene and "
+        "detections too, every N frames, each entity's N values in one call: every frame's value is kept; a "
+        "live viewer shows the metrics up to N frames late (1: every frame)",
         in_range(1, 1000),
     )
     flush_timeout_s: float = key(

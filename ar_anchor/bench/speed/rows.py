@@ -221,6 +221,15 @@ def acceptance_rows(parts: Mapping[str, Any]) -> list[dict[str, Any]]:
             _row("4b", "-", "`ar-anchor --help` wall", s["help_s"],
                  f"`python -m ar_anchor --help`; `python -c pass`: {_s(s['python_s'])} s")
         )  # fmt: skip
+    rows += _live_rows(parts)
+    rows += _found_rows(parts)
+    return rows
+
+
+def _live_rows(parts: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Rows 5a-5d of the live part: capture-to-pose median and p95, and each over the same with
+    ``--no-recording``."""
+    rows: list[dict[str, Any]] = []
     live = _measured(parts, "live")
     if live is not None:
         s = live["summary"]
@@ -235,7 +244,6 @@ def acceptance_rows(parts: Mapping[str, Any]) -> list[dict[str, Any]]:
                     _row(row_id, live["label"], f"capture-to-pose {what}, recording on / `--no-recording`",
                          ratio(mine, bare), f"{_ms(mine)} / {_ms(bare)}; {how}")
                 )  # fmt: skip
-    rows += _found_rows(parts)
     return rows
 
 
