@@ -295,6 +295,7 @@ def _track_offline(
         def keep(_frame: Frame, result: FrameResult, truth: dict[str, Any] | None, stages: dict[str, float]) -> int:
             if not spool:
                 outputs.wait_open()  # opened while the first frame was tracked; a failure is said now, not at the end
+            outputs.poll()  # (and what the output process failed to open, once it says so)
             try:
                 spool.append((result, truth, stages))
             except OSError as err:  # (a full disk: the spool's, not the recording's, which has barely begun)

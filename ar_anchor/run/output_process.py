@@ -31,6 +31,7 @@ tracker's process is gone (its pipe closes), the child closes them too. A second
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import mmap
 import os
@@ -75,6 +76,7 @@ class OutputProcess:
         self._depth = depth
         self._ring = _Ring(depth + 1, spec.camera.width * spec.camera.height * 3)
         to_child, self._tx_fd = os.pipe()
+        _roomy(self._tx_fd)
         self._rx_fd, from_child = os.pipe()
         abandon_child, self._abandon_fd = os.pipe()
         passed = [to_child, from_child, abandon_child, *self._ring.fds()]
@@ -180,8 +182,16 @@ class OutputProcess:
         if self.image_logging is None:
             raise OutputError(f"the output process ended before it opened the outputs ({self._gone})")
 
+    def poll(self) -> None:
+        """Take what the child said; raise what it failed to open or to write, once known."""
+        self._drain()
+        self.check()
+
     def check(self) -> None:
-        """Raise the child's error, if it had one (the frames after it are dropped)."""
+        """Raise what the child failed to open, or its error (the frames after it are dropped), if it had one."""
+        if self._open_error is not None:
+            error, self._open_error = self._open_error, None
+            raise error
         if self._error is not None:
             error, self._error = self._error, None
             self.abandon()
@@ -274,6 +284,15 @@ class OutputProcess:
             f"the output process ended unexpectedly ({self._gone or 'it did not close'}) after {self.done} "
             f"frame(s): {names} incomplete; poses.csv is complete"
         )
+
+
+def _roomy(fd: int) -> None:
+    """The pipe to the child holds up to 1 MiB (Linux; the default 64 kB would make the tracker wait for a
+    child still importing once a few frames of many targets are queued)."""
+    try:
+        fcntl.fcntl(fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), 1 << 20)
+    except OSError:
+        pass  # (a smaller limit: /proc/sys/fs/pipe-max-size)
 
 
 class _Ring:

@@ -60,6 +60,17 @@ _SUMMARY_ROOM = 128 * 1024  # bytes set aside for summary.json (a run of hundred
 _SLACK = 384 * 1024  # and given back at the first full-disk error, for the other files to finish
 
 
+def _worker(spec: OutputSpec, options: RunOptions) -> OutputProcess | OutputThread:
+    """The worker for ``spec``: in a process of its own (``output_process``), or, where no such process can be
+    started (no interpreter to run, a platform without inherited file descriptors), in a thread of this one."""
+    if options.output_process:
+        try:
+            return OutputProcess(spec, depth=options.output_queue)
+        except OSError as err:
+            log.warning("the outputs run in a thread of the tracker's process: no process of their own (%s)", err)
+    return OutputThread(spec, depth=options.output_queue)
+
+
 class RunOutputs:
     """The outputs of one run into ``out_dir`` (see the module doc for the order they close in).
 
@@ -106,17 +117,17 @@ class RunOutputs:
         renderer: OverlayRenderer | None,
     ) -> None:
         """Start the worker (it opens the recording, the annotated video and images), open ``poses.csv`` and
-        ``raw.mkv``, and wait for the worker to say its outputs are open. ``renderer`` draws the overlays
+        ``raw.mkv``. ``renderer`` draws the overlays
         (None: none drawn); ``info``: the source's, for the worker's policy (live: never make the tracker
         wait) and the recording's video reference. The recording holds the overlay models (the viewer
         projects them onto the frame) unless ``--no-overlay``.
 
-        They are opened in a thread of its own, while the tracker takes on the first frame: starting the
-        worker's process (its imports) and opening the recording take 0.5-1 s, which must not come before
-        the first frame is tracked.
-        :meth:`write` waits until they are open (:meth:`wait_open`), and raises what failed to open them,
-        as this method did (nothing written yet: ``poses.csv`` gets no row); :meth:`close` waits too. No
-        signal is raised in that thread: rerun is never imported halfway."""
+        They are opened in a thread of its own, while the tracker takes on the first frame. :meth:`write`
+        waits until that thread is done (:meth:`wait_open`), and raises what failed to open ``poses.csv`` or
+        ``raw.mkv`` or to start the worker (nothing written yet: ``poses.csv`` gets no row); :meth:`close`
+        waits too. The worker's process opens its own outputs meanwhile (its imports and the recording take
+        0.5-1 s, which do not hold up the first poses: the frames wait in its pipe); what fails there is
+        raised at the first frame after it is known (:meth:`poll`), at the latest by :meth:`close`."""
         self._live = info.live
         self._opening = threading.Thread(
             target=self._open_in_thread, args=(camera, recording, info, renderer), name="open-outputs"
@@ -141,6 +152,15 @@ class RunOutputs:
             err, self._open_error = self._open_error, None
             raise err
 
+    def poll(self) -> None:
+        """Raise what the worker failed at, once known (its outputs failing to open, an error while writing):
+        for an offline replay's first pass, which hands the worker nothing."""
+        if self._stage is not None and self._stage_open:
+            try:
+                self._stage.poll()
+            except OutputError as err:
+                raise self._first(err) from None
+
     def _open(
         self, camera: CameraModel, recording: RecordingConfig, info: SourceInfo, renderer: OverlayRenderer | None
     ) -> None:
@@ -149,15 +169,11 @@ class RunOutputs:
             spec = OutputSpec.of(
                 self.recording_rrd, options, camera, recording, renderer, info.video_path, info.frame_count
             )
-            transport = OutputProcess if options.output_process else OutputThread
-            self._stage = transport(spec, depth=options.output_queue)
+            self._stage = _worker(spec, options)
             self._stage_open = True
         self._csv = PosesCsvWriter(self.poses_csv)
         if self.raw_video is not None:
             self._raw = RawVideoWriter(self.raw_video, fps=options.record_fps)
-        if self._stage is not None:
-            self._stage.wait_open()
-            self.image_logging = self._stage.image_logging or "none"
 
     # ------------------------------------------------------------------ per frame
     def write(
@@ -280,6 +296,8 @@ class RunOutputs:
         elif self._lost:
             counts["incomplete"] = self._lost
         counts.update(extras)
+        if self._stage is not None and self._stage.image_logging is not None:
+            self.image_logging = self._stage.image_logging
         data = self.summary.as_dict(wall_time_s, status=status, image_logging=self.image_logging, **counts)
         try:
             self._summary_file.write(data)

@@ -258,6 +258,11 @@ class OutputThread:
     def wait_open(self) -> None:
         """Opened already (in the constructor)."""
 
+    def poll(self) -> None:
+        """Raise the thread's error, if it had one."""
+        if self._stage is not None:
+            self._stage.check()
+
     def submit(self, frame: Frame, result: FrameResult, stages: dict[str, float], *, block: bool) -> bool:
         assert self._stage is not None
         return self._stage.submit(frame, result, stages, block=block)
