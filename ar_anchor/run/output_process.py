@@ -10,14 +10,16 @@ with the run: it inherits the run's working directory, environment and limits, i
 ``--images-out``) and runs an :class:`~.output_worker.OutputWorker` on each frame the tracker hands over:
 
 * a frame's results travel pickled through a pipe (the :class:`~ar_anchor.track.results.FrameResult`, its
-  stage times, the frame's index, times and truth: 5-25 kB); its pixels only when the worker reads them
+  stage times, the frame's index, times and truth: 5-25 kB; not the filter's own per-frame solutions,
+  ``FrameResult.measurements``, which the worker does not draw); its pixels only when the worker reads them
   (:meth:`~.output_worker.OutputSpec.needs_pixels`: not for a recording that references the source video),
   copied into a slot of shared memory (an anonymous ``memfd`` both processes map; an image larger than a
   slot, or a machine without one, sends them through the pipe);
 * the child acknowledges each frame (its slot free again, its ``render_ms``/``log_ms``); at most ``depth``
   frames are unacknowledged. With ``block`` (replay, demo) the tracker waits for room: nothing is dropped;
   without (live) a frame that finds no room is not drawn or logged (still in ``poses.csv``), and counted;
-* the child's log records are said by the tracker's process, as its own; its stdout and stderr go nowhere.
+* the child's log records are said by the tracker's process, as its own; its stdout and stderr go nowhere;
+* the child runs at a lower priority (``nice`` 10): where both want a core, the tracker's threads get it.
 
 Faults. An error in the child (a full disk, a viewer gone) is raised in the tracker's process at the next
 frame, as the output thread's were. A child that dies (killed, crashed) does not stop the tracking: the
@@ -31,6 +33,7 @@ tracker's process is gone (its pipe closes), the child closes them too. A second
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import logging
 import mmap
@@ -147,6 +150,8 @@ class OutputProcess:
             self._gone = f"killed by {signal.Signals(-code).name}"
         else:
             self._gone = "it stopped answering" if code is None else f"exit code {code}"
+        self.skipped += self._in_flight  # (handed over, never acknowledged: not logged)
+        self._in_flight = 0
 
     def _take(self, message: tuple[Any, ...]) -> None:
         kind = message[0]
@@ -216,7 +221,10 @@ class OutputProcess:
         if self.spec.needs_pixels(frame.index, self.image_logging or "jpeg"):
             pixels = self._ring.put(frame.image)
         meta = (frame.index, frame.timestamp_ns, frame.truth, frame.arrived_ns)
-        if not self._send(("frame", meta, result, stages, pixels)):
+        sent = (
+            dataclasses.replace(result, measurements={}) if result.measurements else result
+        )  # (the filter's: a third)
+        if not self._send(("frame", meta, sent, stages, pixels)):
             self._ring.free(pixels)
             self.skipped += 1
             return False
@@ -423,11 +431,25 @@ def _send(tx: connection.Connection, message: tuple[Any, ...]) -> bool:
         return False
 
 
+_NICENESS = 10  # the child's scheduling priority below the tracker's (see _yield_to_the_tracker)
+
+
+def _yield_to_the_tracker() -> None:
+    """Where both want a core, the tracker's threads get it first: the child runs at a lower priority
+    (``nice``). Live, a child that falls behind drops frames from the recording (counted), never a pose late;
+    a replay waits for it only once its queue is full."""
+    try:
+        os.nice(_NICENESS)
+    except OSError:
+        pass
+
+
 def child_main() -> None:
     """The child process (``python -c``, its pipes' and memory's descriptors as arguments): open the outputs
     the tracker's first message describes, draw and log each frame received, close them at the end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # (its own session already: the tracker says when to end)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _yield_to_the_tracker()
     rx_fd, tx_fd, abandon_fd, memory_fd = (int(arg) for arg in sys.argv[1:5])
     rx = connection.Connection(rx_fd, writable=False)
     tx = connection.Connection(tx_fd, readable=False)
