@@ -189,7 +189,8 @@ def recording_files(names: list[str]) -> list[Path]:
         if path.is_dir():
             parts = sorted(path.glob("recording*.rrd"), key=_part_number)
             if not parts:
-                raise InputError(f"{printable(name)}: no recording (recording*.rrd) in this directory")
+                made = " (the run was made with --no-recording)" if _made_without_recording(path) else ""
+                raise InputError(f"{printable(name)}: no recording (recording*.rrd) in this directory{made}")
         else:
             parts = [path]
         for part in parts:
@@ -330,3 +331,14 @@ def serve_run(args: argparse.Namespace) -> int:
         return code
     finally:
         viewer.stop()
+
+
+def _made_without_recording(folder: Path) -> bool:
+    """Does ``folder``'s ``summary.json`` say its run wrote no recording (``--no-recording``)?"""
+    import json
+
+    try:
+        summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(summary, dict) and summary.get("recording") is False

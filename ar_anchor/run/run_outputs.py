@@ -272,6 +272,8 @@ class RunOutputs:
         run ended), the options' ``extra_summary``, what the outputs counted, then ``extras``."""
         options = self._options
         counts = dict(options.extra_summary)
+        if not options.recording:
+            counts["recording"] = False  # (--no-recording: said, so that view can say why there is none)
         video_frames = self._counts.video_frames
         if options.video_out is not None and video_frames:  # (opened at its first frame: none, no file)
             counts["video_out"] = {"path": str(options.video_out), "frames": video_frames}

@@ -17,7 +17,7 @@ from rerun.chunk import RrdReader
 
 from ar_anchor.camera import CameraModel
 from ar_anchor.config import demo_config
-from ar_anchor.errors import EXIT_FAILURE, EXIT_INTERRUPTED, OutputError
+from ar_anchor.errors import EXIT_FAILURE, EXIT_INTERRUPTED, InputError, OutputError
 from ar_anchor.run.loop import run_session
 from ar_anchor.run.options import RunOptions
 from ar_anchor.run.output_process import OutputProcess
@@ -75,7 +75,12 @@ def test_no_recording_writes_poses_and_summary_only(tmp_path):
     result = run_session(SyntheticSource(scene), Tracker(demo_config(), scene.camera), tmp_path / "out", options)
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["poses.csv", "summary.json"]
     assert result.summary["frames"] == 8 and "frames_logged" not in result.summary
-    assert result.summary["image_logging"] == "none"
+    assert result.summary["image_logging"] == "none" and result.summary["recording"] is False
+    # and view says why there is nothing to open
+    from ar_anchor.cli.view import recording_files
+
+    with pytest.raises(InputError, match="made with --no-recording"):
+        recording_files([str(tmp_path / "out")])
 
 
 def test_a_child_error_is_raised_at_the_next_frame_and_the_rest_dropped(tmp_path):
