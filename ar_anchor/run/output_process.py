@@ -93,6 +93,11 @@ class OutputProcess:
                 start_new_session=True,  # Ctrl-C reaches the tracker's process group only: it tells the child
                 env={**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)},
             )
+        except BaseException:
+            for fd in (self._tx_fd, self._rx_fd, self._abandon_fd):
+                os.close(fd)
+            self._ring.close()
+            raise
         finally:
             for fd in (to_child, from_child, abandon_child):
                 os.close(fd)  # (the parent's copies: the child's end of a pipe closes when the child dies)
