@@ -85,7 +85,18 @@ from ..sources.base import Frame
 from ..targets import TargetId, TrackState
 from ..track.results import FrameResult, TargetResult
 from .blueprints import Framing, run_blueprint
-from .parts import closed_squares, entity_name, mesh3d
+from .parts import (
+    Place,
+    Shapes,
+    Trail,
+    branch_strips,
+    camera_in_world,
+    causal_axes,
+    closed_squares,
+    entity_name,
+    mesh3d,
+    placed,
+)
 from .pinhole import _distortion_note, image_from_camera
 from .series import SeriesBuffer
 from .sinks import Recording
@@ -102,8 +113,6 @@ _STATE_COLOURS = {
 }
 _FAILED_COLOUR = (255, 60, 60)
 _MEMBER_RADIUS = 0.5  # the outline of a marker drawn as part of its board (FrameResult.board_members)
-_CAUSAL_COLOURS = [(255, 120, 120, 160), (120, 255, 120, 160), (120, 120, 255, 160)]  # x, y, z: pale
-_BRANCH_COLOURS = np.array([(90, 200, 255, 90), (255, 140, 60, 90)], np.uint8)  # the filter's branch 0, 1
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
 _NO_AXES = rr.TransformAxes3D(axis_length=0.0)  # a gone target's axes (see _clear_gone), built once
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
@@ -162,9 +171,10 @@ class RerunRecorder:
         self._video_frame_ns: np.ndarray | None = None  # a referenced source video's frame times
         self._video_part: str | None = None  # the part that holds that video (the first)
         self._states: dict[TargetId, TrackState] = {}
-        self._trajectory: list[np.ndarray] = []
+        self._trajectory = Trail(_TRAJECTORY_POINTS)  # the camera centre's last places
+        self._shapes = Shapes()  # each target's branch shape (world/hypotheses)
         self._labelled = False  # world/labels holds something (cleared when no target is left)
-        self._world_from_camera: Pose | None = None  # the camera where the anchor last placed it
+        self._world_from_camera: Place | None = None  # the camera where the anchor last placed it
         self._hypotheses_drawn = False
         self._framed = False  # the 3D view's eye framed on the targets (once, at the first frame placing them)
         self._causal_drawn = False
@@ -456,28 +466,31 @@ class RerunRecorder:
                 "world/truth_camera", rr.Points3D(centre, radii=0.005, colors=[(255, 255, 255)], labels=["true camera"])
             )
         if anchor is not None:
-            self._log_camera(anchor.pose.inverse(), anchor.length_m)
+            self._log_camera(camera_in_world(anchor.pose), anchor.length_m)
         world_from_camera = self._world_from_camera
         if world_from_camera is None:
             return
+        others = [target for name, target in result.targets.items() if name != self.anchor]
+        rotations, translations = placed(world_from_camera, [target.pose for target in others])  # world_from_target
         labels: list[tuple[str, np.ndarray, float]] = []  # every target's name at its centre, in the world
+        index = 0
         for name, target in result.targets.items():
             if name == self.anchor:
                 labels.append((name, np.zeros(3), target.length_m))
                 continue
             if name not in self._shapes_logged or any(e.kind == "group" for e in target.events):
                 self._log_shape(name, target, is_anchor=False)  # (a learned group's members changed: drawn anew)
-            world_from_target = world_from_camera.compose(target.pose)
             entity = self._own(name, f"world/targets/{entity_name(name)}")
-            self.series.transform(entity, world_from_target.tvec, world_from_target.rotation)  # sent in batches
-            labels.append((name, world_from_target.tvec, target.length_m))
+            self.series.transform(entity, translations[index], rotations[index])  # sent in batches
+            labels.append((name, translations[index], target.length_m))
+            index += 1
         self._log_labels(labels)
         if labels and not self._framed:
             self._frame_targets(labels, world_from_camera)
         self._log_hypotheses(result, world_from_camera)
         self._log_causal(result, world_from_camera)
 
-    def _frame_targets(self, labels: list[tuple[str, np.ndarray, float]], world_from_camera: Pose) -> None:
+    def _frame_targets(self, labels: list[tuple[str, np.ndarray, float]], world_from_camera: Place) -> None:
         """The layout again, its 3D eye framed on the targets placed now (``labels``), from the camera's side."""
         self._framed = True
         if not self._sends_layout:
@@ -485,7 +498,7 @@ class RerunRecorder:
         framing = Framing.on(
             np.array([position for _, position, _ in labels]),
             np.array([length for _, _, length in labels]),
-            world_from_camera.tvec,
+            world_from_camera[1],
         )
         self.recording.send_blueprint(self._layout(framing))
 
@@ -508,53 +521,37 @@ class RerunRecorder:
         )
         self._labelled = True
 
-    def _log_camera(self, world_from_camera: Pose, length_m: float) -> None:
+    def _log_camera(self, world_from_camera: Place, length_m: float) -> None:
         """``world/camera``'s pose (its translation is the camera centre C = -R^T t) and its trajectory."""
         self._world_from_camera = world_from_camera
-        self.series.transform("world/camera", world_from_camera.tvec, world_from_camera.rotation)  # in batches
-        self._trajectory.append(world_from_camera.tvec.copy())
-        del self._trajectory[:-_TRAJECTORY_POINTS]
+        rotation, translation = world_from_camera
+        self.series.transform("world/camera", translation, rotation)  # in batches
+        self._trajectory.append(translation)
         if len(self._trajectory) >= 2:
             self.series.log(
                 "world/camera_trajectory",
-                rr.LineStrips3D([np.asarray(self._trajectory)], colors=[(255, 210, 60)], radii=[length_m / 80]),
+                rr.LineStrips3D([self._trajectory.points()], colors=[(255, 210, 60)], radii=[length_m / 80]),
             )
 
-    def _log_hypotheses(self, result: FrameResult, world_from_camera: Pose) -> None:
+    def _log_hypotheses(self, result: FrameResult, world_from_camera: Place) -> None:
         """Both IPPE branches of every target, faint, so the flip the filter resolves can be seen: all
         targets' in one ``LineStrips3D`` (per branch its marker squares and its normal), logged whole each
         frame, so a branch or target that is gone is gone from it."""
-        strips: list[np.ndarray] = []
-        colours: list[np.ndarray] = []
-        radii: list[np.ndarray] = []
-        for target in result.targets.values():
-            if not target.branch_poses:
-                continue
-            normal = np.array([[0.0, 0.0, 0.0], *[[0.0, 0.0, target.length_m]] * 4])  # as long as a square
-            shape = np.concatenate([closed_squares(target), normal[None]])  # (S + 1, 5, 3)
-            for branch, pose in enumerate(target.branch_poses):
-                if pose is None:
-                    continue
-                rotation = world_from_camera.rotation @ pose.rotation
-                translation = world_from_camera.rotation @ pose.tvec + world_from_camera.tvec
-                strips.append(shape @ rotation.T + translation)
-                colours.append(np.tile(_BRANCH_COLOURS[min(branch, 1)], (len(shape), 1)))
-                radii.append(np.full(len(shape), target.length_m / 120, np.float32))
-        if strips:
-            lines = rr.LineStrips3D(np.concatenate(strips), colors=np.concatenate(colours), radii=np.concatenate(radii))
-            self.series.log("world/hypotheses", lines)
+        drawn = branch_strips(list(result.targets.values()), world_from_camera, self._shapes)
+        if drawn is not None:
+            strips, colours, radii = drawn
+            self.series.log("world/hypotheses", rr.LineStrips3D(strips, colors=colours, radii=radii))
             self._hypotheses_drawn = True
         elif self._hypotheses_drawn:
             self._clear("world/hypotheses")
             self._hypotheses_drawn = False
 
-    def _log_causal(self, result: FrameResult, world_from_camera: Pose) -> None:
+    def _log_causal(self, result: FrameResult, world_from_camera: Place) -> None:
         """Offline replay: the live (causal) filter's pose of every target beside the offline one, as thin
         axes (``world/causal``, all targets in one ``Arrows3D``), and the angle between the two poses."""
         causal = result.causal_targets
         if causal is None:
             return
-        origins, vectors, colours = [], [], []
         for name, target in causal.items():
             offline = result.targets.get(name)
             if offline is not None:
@@ -562,13 +559,9 @@ class RerunRecorder:
                     self._own(name, f"metrics/offline_vs_causal_deg/{entity_name(name)}"),
                     angle_between_deg(offline.pose.rotation, target.pose.rotation),
                 )
-            world_from_target = world_from_camera.compose(target.pose)
-            axes = world_from_target.rotation.T * (target.length_m * 0.75)  # rows: the target's x, y, z
-            origins.extend([world_from_target.tvec] * 3)
-            vectors.extend(axes)
-            colours.extend(_CAUSAL_COLOURS)
-        if origins:
-            arrows = rr.Arrows3D(origins=np.array(origins), vectors=np.array(vectors), colors=np.array(colours))
+        if causal:
+            origins, vectors, colours = causal_axes(list(causal.values()), world_from_camera)
+            arrows = rr.Arrows3D(origins=origins, vectors=vectors, colors=colours)
             self.series.log("world/causal", arrows)
             self._causal_drawn = True
         elif self._causal_drawn:
