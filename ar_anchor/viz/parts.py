@@ -33,6 +33,7 @@ __all__ = [
     "entity_name",
     "mesh3d",
     "placed",
+    "shape_key",
 ]
 
 
@@ -89,6 +90,16 @@ def placed(world_from_camera: Place, poses: Sequence[Pose]) -> tuple[np.ndarray,
     return rotations, translations
 
 
+def shape_key(target: TargetResult) -> tuple:
+    """What a target's shape in its own frame depends on: its size and its marker squares (a key of
+    values: the same from frame to frame, and from a target's results pickled to another process)."""
+    outline = target.outline_in_target
+    if outline is None:
+        return (target.length_m,)
+    outline = np.asarray(outline, np.float64)
+    return (target.length_m, outline.shape, outline.tobytes())
+
+
 class Shapes:
     """Each target's branch shape in its own frame: its marker squares and its normal (as long as a square)
     as closed line strips, (S + 1, 5, 3); kept by outline and length (the same frame after frame; a
@@ -99,12 +110,7 @@ class Shapes:
         self._kept: dict[tuple, np.ndarray] = {}
 
     def __call__(self, target: TargetResult) -> np.ndarray:
-        outline = target.outline_in_target
-        if outline is not None:
-            outline = np.asarray(outline, np.float64)
-            key: tuple = (target.length_m, outline.shape, outline.tobytes())
-        else:
-            key = (target.length_m,)
+        key = shape_key(target)
         shape = self._kept.get(key)
         if shape is None:
             if len(self._kept) >= self.limit:

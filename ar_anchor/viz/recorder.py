@@ -96,6 +96,7 @@ from .parts import (
     entity_name,
     mesh3d,
     placed,
+    shape_key,
 )
 from .pinhole import _distortion_note, image_from_camera
 from .series import SeriesBuffer
@@ -113,6 +114,8 @@ _STATE_COLOURS = {
 }
 _FAILED_COLOUR = (255, 60, 60)
 _MEMBER_RADIUS = 0.5  # the outline of a marker drawn as part of its board (FrameResult.board_members)
+_METRICS = ("reproj_px", "ambiguity", "inliers", "flip_evidence_px", "rotation_error_deg")  # per target
+_SHAPES_KEPT = 256  # the targets' outlines and axes kept built (a learned group's outline changes)
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
 _NO_AXES = rr.TransformAxes3D(axis_length=0.0)  # a gone target's axes (see _clear_gone), built once
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
@@ -168,11 +171,13 @@ class RerunRecorder:
         self._shapes_logged: set[TargetId] = set()  # targets whose shape is in the current part and not cleared
         self._drawn: dict[TargetId, set[str]] = {}  # a target -> its entities logged since it was last cleared
         self._meshes: dict[TargetId, list[rr.Mesh3D]] = {}  # a target -> its overlay models as meshes
+        self._drawings: dict[tuple, tuple[Any, Any]] = {}  # a shape (shape_key) -> its outline and axes
         self._video_frame_ns: np.ndarray | None = None  # a referenced source video's frame times
         self._video_part: str | None = None  # the part that holds that video (the first)
         self._states: dict[TargetId, TrackState] = {}
+        self._series_of: dict[TargetId, tuple[str, ...]] = {}  # a target -> its metrics' series (_metric_series)
         self._trajectory = Trail(_TRAJECTORY_POINTS)  # the camera centre's last places
-        self._shapes = Shapes()  # each target's branch shape (world/hypotheses)
+        self._shapes = Shapes(_SHAPES_KEPT)  # each target's branch shape (world/hypotheses)
         self._labelled = False  # world/labels holds something (cleared when no target is left)
         self._world_from_camera: Place | None = None  # the camera where the anchor last placed it
         self._hypotheses_drawn = False
@@ -269,17 +274,22 @@ class RerunRecorder:
         and overlay models. The anchor's is static (it is the world frame); any other target's is logged
         on the timeline, so that clearing the target when it is gone removes it."""
         path = "world" if is_anchor else self._own(name, f"world/targets/{entity_name(name)}")
-        length_m = target.length_m
+        key = shape_key(target)
+        drawn = self._drawings.get(key)  # (built once per shape: targets come and go, each drawn anew)
+        if drawn is None:
+            if len(self._drawings) >= _SHAPES_KEPT:
+                self._drawings.clear()
+            length_m = target.length_m
+            drawn = self._drawings[key] = (
+                rr.LineStrips3D(closed_squares(target), colors=[(230, 230, 230)], radii=[length_m / 60]),
+                rr.TransformAxes3D(axis_length=length_m * 0.75),
+            )
         log_ = self.recording.log
-        log_(
-            f"{path}/outline",
-            rr.LineStrips3D(closed_squares(target), colors=[(230, 230, 230)], radii=[length_m / 60]),
-            static=is_anchor,
-        )
-        log_(f"{path}/axes", rr.TransformAxes3D(axis_length=length_m * 0.75), static=is_anchor)
+        log_(f"{path}/outline", drawn[0], static=is_anchor)
+        log_(f"{path}/axes", drawn[1], static=is_anchor)
         if self.overlay_models is not None:
             if name not in self._meshes:  # built once per target: it comes back with the same models
-                self._meshes[name] = [mesh3d(placed.model) for placed in self.overlay_models(target)]
+                self._meshes[name] = [mesh3d(overlay.model) for overlay in self.overlay_models(target)]
             for index, mesh in enumerate(self._meshes[name]):
                 log_(f"{path}/overlay/{index}", mesh, static=is_anchor)
         self._shapes_logged.add(name)
@@ -379,15 +389,16 @@ class RerunRecorder:
         colours, labels, radii = [], [], []
         failed = {f.marker_id for f in result.failures}
         members = result.board_members()
+        targets = result.targets
         for marker_id in result.detections.ids.tolist():
-            name = TargetId.marker(marker_id)
+            name = f"marker:{marker_id}"  # (TargetId.marker's string, which finds its target's entries)
             board = members.get(name)
             if board is not None:  # part of a board: thin, in the board's colour, no label of its own
-                colours.append(_STATE_COLOURS[result.targets[board].state])
+                colours.append(_STATE_COLOURS[targets[board].state])
                 labels.append("")
                 radii.append(_MEMBER_RADIUS)
                 continue
-            target = result.targets.get(name)
+            target = targets.get(name)
             colour = (
                 _STATE_COLOURS[target.state] if target else (_FAILED_COLOUR if marker_id in failed else (160, 160, 160))
             )
@@ -432,15 +443,15 @@ class RerunRecorder:
         """Each target's metrics (sent in batches), state changes and filter events."""
         scalar = self.series.add
         for name, target in result.targets.items():
-            part = entity_name(name)
+            reproj, ambiguity, inliers, evidence, rotation_error = self._metric_series(name)
             if math.isfinite(target.reproj_px):
-                scalar(self._own(name, f"metrics/reproj_px/{part}"), target.reproj_px)
+                scalar(self._own(name, reproj), target.reproj_px)
             if math.isfinite(target.ambiguity):
-                scalar(self._own(name, f"metrics/ambiguity/{part}"), target.ambiguity)
+                scalar(self._own(name, ambiguity), target.ambiguity)
             if name.is_board and target.measured:
-                scalar(self._own(name, f"metrics/inliers/{part}"), float(target.inliers))
+                scalar(self._own(name, inliers), float(target.inliers))
             if math.isfinite(target.evidence_px):
-                scalar(self._own(name, f"metrics/flip_evidence_px/{part}"), target.evidence_px)
+                scalar(self._own(name, evidence), target.evidence_px)
             previous_state = self._states.get(name)
             if previous_state != target.state:
                 self._states[name] = target.state
@@ -450,7 +461,15 @@ class RerunRecorder:
                 self.recording.text("events", f"{name}: {event.kind}: {event.message}", warn=warn)
             if truth is not None and name in truth:
                 error = angle_between_deg(target.pose.rotation, truth[name].rotation)
-                scalar(self._own(name, f"metrics/rotation_error_deg/{part}"), error)
+                scalar(self._own(name, rotation_error), error)
+
+    def _metric_series(self, name: TargetId) -> tuple[str, ...]:
+        """The target's ``metrics/<metric>/<target>`` series (:data:`_METRICS`), named once per target."""
+        series = self._series_of.get(name)
+        if series is None:
+            part = entity_name(name)
+            series = self._series_of[name] = tuple(f"metrics/{metric}/{part}" for metric in _METRICS)
+        return series
 
     def _log_world(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
         """The camera (placed by the anchor; held where it was last seen while the anchor is out of view),
