@@ -19,10 +19,12 @@ import rerun as rr
 from ..geometry import Pose, marker_corners_in_marker
 from ..targets import TargetId
 from ..track.results import TargetResult
+from .sinks import Recording
 
 __all__ = [
     "BRANCH_COLOURS",
     "CAUSAL_COLOURS",
+    "Drawings",
     "Place",
     "Shapes",
     "Trail",
@@ -98,6 +100,27 @@ def shape_key(target: TargetResult) -> tuple:
         return (target.length_m,)
     outline = np.asarray(outline, np.float64)
     return (target.length_m, outline.shape, outline.tobytes())
+
+
+class Drawings:
+    """Each target's 3D object as logged, its outline (its marker squares, closed) and its axes: converted
+    once per shape (:func:`shape_key`, at most ``limit`` of them), logged each time the target comes back."""
+
+    def __init__(self, limit: int = 256) -> None:
+        self.limit = limit
+        self._kept: dict[tuple, tuple[Any, Any]] = {}
+
+    def __call__(self, target: TargetResult) -> tuple[Any, Any]:
+        key = shape_key(target)
+        drawn = self._kept.get(key)
+        if drawn is None:
+            if len(self._kept) >= self.limit:
+                self._kept.clear()
+            length_m = target.length_m
+            outline = rr.LineStrips3D(closed_squares(target), colors=[(230, 230, 230)], radii=[length_m / 60])
+            axes = rr.TransformAxes3D(axis_length=length_m * 0.75)
+            drawn = self._kept[key] = (Recording.prebuilt(outline), Recording.prebuilt(axes))
+        return drawn
 
 
 class Shapes:

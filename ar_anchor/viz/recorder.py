@@ -86,17 +86,16 @@ from ..targets import TargetId, TrackState
 from ..track.results import FrameResult, TargetResult
 from .blueprints import Framing, run_blueprint
 from .parts import (
+    Drawings,
     Place,
     Shapes,
     Trail,
     branch_strips,
     camera_in_world,
     causal_axes,
-    closed_squares,
     entity_name,
     mesh3d,
     placed,
-    shape_key,
 )
 from .pinhole import _distortion_note, image_from_camera
 from .series import SeriesBuffer
@@ -117,7 +116,7 @@ _MEMBER_RADIUS = 0.5  # the outline of a marker drawn as part of its board (Fram
 _METRICS = ("reproj_px", "ambiguity", "inliers", "flip_evidence_px", "rotation_error_deg")  # per target
 _SHAPES_KEPT = 256  # the targets' outlines and axes kept built (a learned group's outline changes)
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
-_NO_AXES = rr.TransformAxes3D(axis_length=0.0)  # a gone target's axes (see _clear_gone), built once
+_NO_AXES = Recording.prebuilt(rr.TransformAxes3D(axis_length=0.0))  # a gone target's axes (_clear_gone)
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
 IMAGE = "world/camera/image"  # the frame, under the camera's pinhole (where the viewer projects the 3D scene)
 OVERLAY_IMAGE = "camera/overlay"  # the annotated image (``overlay_images``), outside the projected world
@@ -171,7 +170,7 @@ class RerunRecorder:
         self._shapes_logged: set[TargetId] = set()  # targets whose shape is in the current part and not cleared
         self._drawn: dict[TargetId, set[str]] = {}  # a target -> its entities logged since it was last cleared
         self._meshes: dict[TargetId, list[rr.Mesh3D]] = {}  # a target -> its overlay models as meshes
-        self._drawings: dict[tuple, tuple[Any, Any]] = {}  # a shape (shape_key) -> its outline and axes
+        self._drawings = Drawings(_SHAPES_KEPT)  # each target's outline and axes
         self._video_frame_ns: np.ndarray | None = None  # a referenced source video's frame times
         self._video_part: str | None = None  # the part that holds that video (the first)
         self._states: dict[TargetId, TrackState] = {}
@@ -274,19 +273,10 @@ class RerunRecorder:
         and overlay models. The anchor's is static (it is the world frame); any other target's is logged
         on the timeline, so that clearing the target when it is gone removes it."""
         path = "world" if is_anchor else self._own(name, f"world/targets/{entity_name(name)}")
-        key = shape_key(target)
-        drawn = self._drawings.get(key)  # (built once per shape: targets come and go, each drawn anew)
-        if drawn is None:
-            if len(self._drawings) >= _SHAPES_KEPT:
-                self._drawings.clear()
-            length_m = target.length_m
-            drawn = self._drawings[key] = (
-                rr.LineStrips3D(closed_squares(target), colors=[(230, 230, 230)], radii=[length_m / 60]),
-                rr.TransformAxes3D(axis_length=length_m * 0.75),
-            )
+        outline, axes = self._drawings(target)  # (built once per shape: targets come and go, each drawn anew)
         log_ = self.recording.log
-        log_(f"{path}/outline", drawn[0], static=is_anchor)
-        log_(f"{path}/axes", drawn[1], static=is_anchor)
+        log_(f"{path}/outline", outline, static=is_anchor)
+        log_(f"{path}/axes", axes, static=is_anchor)
         if self.overlay_models is not None:
             if name not in self._meshes:  # built once per target: it comes back with the same models
                 self._meshes[name] = [mesh3d(overlay.model) for overlay in self.overlay_models(target)]

@@ -291,6 +291,13 @@ class Recording:
         :meth:`rows_columns`."""
         return [(batch.component_descriptor(), batch.as_arrow_array()) for batch in data.as_component_batches()]
 
+    @staticmethod
+    def prebuilt(data: Any) -> Any:
+        """The archetype ``data`` with its components converted to arrow once, to be logged (:meth:`log`)
+        many times: what ``rr.log`` of ``data`` logs, without converting it again each time (its fields
+        read as ``data``'s)."""
+        return _Prebuilt(data)
+
     def rows_columns(self, entity: str, rows: Sequence[list[tuple[Any, pa.Array]]], times: Any) -> None:
         """Several rows of one archetype at ``entity`` in one call: ``rows[i]`` (:meth:`component_arrays`, the
         same components in every row) at the i-th row of ``times`` (:meth:`time_columns`)."""
@@ -381,6 +388,22 @@ class _Column:
         return self.array
 
 
+class _Prebuilt:
+    """An archetype whose components are converted once (:meth:`Recording.prebuilt`)."""
+
+    __slots__ = ("_batches", "_data")
+
+    def __init__(self, data: Any) -> None:
+        self._data = data
+        self._batches = [_Column(descriptor, array) for descriptor, array in Recording.component_arrays(data)]
+
+    def as_component_batches(self) -> list[_Column]:
+        return self._batches
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._data, name)
+
+
 @functools.cache
 def _columns_of(archetype: str) -> tuple[tuple[Any, ...], tuple[pa.ListType, ...]]:
     """The descriptors and arrow types of the columns rerun builds for an archetype: ``scalars``
@@ -397,9 +420,10 @@ def _columns_of(archetype: str) -> tuple[tuple[Any, ...], tuple[pa.ListType, ...
 
 
 @functools.cache
-def _clear(recursive: bool) -> rr.Clear:
-    """``rr.Clear(recursive=recursive)``, built once (a gone target's clears are several a frame)."""
-    return rr.Clear(recursive=recursive)
+def _clear(recursive: bool) -> _Prebuilt:
+    """``rr.Clear(recursive=recursive)``'s components, converted once (a gone target's clears are several a
+    frame)."""
+    return Recording.prebuilt(rr.Clear(recursive=recursive))
 
 
 @functools.cache
