@@ -397,7 +397,8 @@ class RerunRecorder:
             radii.append(1.0)
         quads = np.asarray(result.detections.corners, np.float64).reshape(-1, 4, 2)
         strips = (np.concatenate([quads, quads[:, :1]], axis=1) + 0.5) * scale  # (N, 5, 2), one array
-        self.series.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=radii))
+        markers = Recording.cells("LineStrips2D", strips=strips, colors=colours, labels=labels, radii=radii)
+        self.series.log(f"{IMAGE}/markers", markers)
         corners = np.asarray(result.detections.corners.reshape(-1, 2), np.float64)
         self.series.log(f"{IMAGE}/corners", self.recording.image_points_data(corners, 1.5, [(255, 0, 255)], scale))
         for name, target in result.targets.items():
@@ -522,8 +523,9 @@ class RerunRecorder:
             return
         self.series.log(
             "world/labels",
-            rr.Points3D(
-                np.array([position for _, position, _ in labels]),
+            Recording.cells(
+                "Points3D",
+                positions=np.array([position for _, position, _ in labels]),
                 labels=[name for name, _, _ in labels],
                 radii=np.array([length / 40 for _, _, length in labels]),
             ),
@@ -537,10 +539,9 @@ class RerunRecorder:
         self.series.transform("world/camera", translation, rotation)  # in batches
         self._trajectory.append(translation)
         if len(self._trajectory) >= 2:
-            self.series.log(
-                "world/camera_trajectory",
-                rr.LineStrips3D([self._trajectory.points()], colors=[(255, 210, 60)], radii=[length_m / 80]),
-            )
+            path = self._trajectory.points()[None]  # (one strip)
+            line = Recording.cells("LineStrips3D", strips=path, colors=[(255, 210, 60)], radii=[length_m / 80])
+            self.series.log("world/camera_trajectory", line)
 
     def _log_hypotheses(self, result: FrameResult, world_from_camera: Place) -> None:
         """Both IPPE branches of every target, faint, so the flip the filter resolves can be seen: all
@@ -549,7 +550,8 @@ class RerunRecorder:
         drawn = branch_strips(list(result.targets.values()), world_from_camera, self._shapes)
         if drawn is not None:
             strips, colours, radii = drawn
-            self.series.log("world/hypotheses", rr.LineStrips3D(strips, colors=colours, radii=radii))
+            lines = Recording.cells("LineStrips3D", strips=strips, colors=colours, radii=radii)
+            self.series.log("world/hypotheses", lines)
             self._hypotheses_drawn = True
         elif self._hypotheses_drawn:
             self._clear("world/hypotheses")

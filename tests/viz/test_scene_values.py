@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rerun as rr
 from rerun.chunk import RrdReader
 
 from ar_anchor.camera import CameraModel
@@ -21,6 +22,7 @@ from ar_anchor.synthetic.trajectory import Trajectory
 from ar_anchor.targets import TargetId
 from ar_anchor.viz.parts import Shapes, Trail, branch_strips, camera_in_world, causal_axes, closed_squares, placed
 from ar_anchor.viz.recorder import RerunRecorder
+from ar_anchor.viz.sinks import Recording
 
 
 @pytest.fixture(scope="module")
@@ -174,3 +176,49 @@ def test_the_trail_keeps_the_last_points_in_order():
         kept.append(point)
         assert len(trail) == min(len(kept), 4)
         np.testing.assert_array_equal(trail.points(), np.array(kept[-4:]))
+
+
+def _arrays(data) -> list[tuple[str, object]]:
+    return [(descriptor, array) for descriptor, array in Recording.component_arrays(data)]
+
+
+@pytest.mark.parametrize("count", [0, 1, 3, 17])
+def test_cells_built_directly_are_what_rerun_builds(count):
+    rng = np.random.default_rng(count)
+    labels = [str(i) if i % 2 else "" for i in range(count)]
+    rgb = [tuple(int(c) for c in rng.integers(0, 256, 3)) for _ in range(count)]
+    rgba = rng.integers(0, 256, (count, 4)).astype(np.uint8)
+    radii = list(rng.random(count))
+    strips2, strips3 = rng.random((count, 5, 2)) * 500, rng.random((count, 5, 3))
+    points2, points3 = rng.random((count, 2)) * 500, rng.random((count, 3))
+    cases = [
+        (
+            rr.LineStrips2D(strips2, colors=rgb, labels=labels, radii=radii),
+            Recording.cells("LineStrips2D", strips=strips2, colors=rgb, labels=labels, radii=radii),
+        ),
+        (
+            rr.LineStrips3D(strips3, colors=rgba, radii=np.float32(radii)),
+            Recording.cells("LineStrips3D", strips=strips3, colors=rgba, radii=np.float32(radii)),
+        ),
+        (
+            rr.Points2D(points2, radii=1.5, colors=[(255, 0, 255)]),
+            Recording.cells("Points2D", positions=points2, radii=1.5, colors=[(255, 0, 255)]),
+        ),
+        (
+            rr.Points3D(points3, labels=labels, radii=np.array(radii)),
+            Recording.cells("Points3D", positions=points3, labels=labels, radii=np.array(radii)),
+        ),
+    ]
+    if count:  # one strip of many points (the camera's trajectory)
+        cases.append(
+            (
+                rr.LineStrips3D([points3], colors=[(255, 210, 60)], radii=[0.25]),
+                Recording.cells("LineStrips3D", strips=points3[None], colors=[(255, 210, 60)], radii=[0.25]),
+            )
+        )
+    for data, built in cases:
+        want, got = _arrays(data), _arrays(built)
+        assert [d for d, _ in got] == [d for d, _ in want]
+        for (descriptor, array), (_, expected) in zip(got, want):
+            assert array.type == expected.type, descriptor
+            assert array.equals(expected), (descriptor, array, expected)
