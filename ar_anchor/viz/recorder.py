@@ -434,15 +434,15 @@ class RerunRecorder:
         """Each target's metrics (sent in batches), state changes and filter events."""
         scalar = self.series.add
         for name, target in result.targets.items():
-            reproj, ambiguity, inliers, evidence, rotation_error = self._metric_series(name)
-            if math.isfinite(target.reproj_px):
-                scalar(self._own(name, reproj), target.reproj_px)
-            if math.isfinite(target.ambiguity):
-                scalar(self._own(name, ambiguity), target.ambiguity)
-            if name.is_board and target.measured:
-                scalar(self._own(name, inliers), float(target.inliers))
-            if math.isfinite(target.evidence_px):
-                scalar(self._own(name, evidence), target.evidence_px)
+            *series, rotation_error = self._metric_series(name)
+            inliers = float(target.inliers) if name.is_board and target.measured else math.nan
+            owned = None
+            for entity, value in zip(series, (target.reproj_px, target.ambiguity, inliers, target.evidence_px)):
+                if math.isfinite(value):  # (the target's own: cleared when it is gone)
+                    if owned is None:
+                        owned = self._drawn.setdefault(name, set())
+                    owned.add(entity)
+                    scalar(entity, value)
             previous_state = self._states.get(name)
             if previous_state != target.state:
                 self._states[name] = target.state
