@@ -296,7 +296,7 @@ class Recording:
         """What ``rr.<archetype>(**fields)`` logs (``LineStrips2D``, ``LineStrips3D``, ``Points2D``, ``Points3D``),
         its arrow arrays built directly from arrays (rerun's own conversion, per field, costs several times
         more): ``strips`` (N, K, D) floats (strips of one length), ``positions`` (N, D) floats, ``colors``
-        (N, 3 or 4) 0-255 (opaque without alpha), ``radii`` floats, ``labels`` strings. Logged as an archetype
+        (N, 3 or 4) integers 0-255 (opaque without alpha), ``radii`` floats, ``labels`` strings. Logged as an archetype
         (:meth:`log`, :meth:`.series.SeriesBuffer.log`); its fields read as arrow columns (``.strips``)."""
         kinds = _fields_of(archetype)
         places = sorted((kinds[name], value, name) for name, value in fields.items())  # (in rerun's order)
@@ -412,6 +412,8 @@ class _Prebuilt:
         return self._batches
 
     def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):  # (not the archetype's: a copy's slots before they are set)
+            raise AttributeError(name)
         return getattr(self._data, name)
 
 
@@ -427,6 +429,8 @@ class _Cells:
         return self._batches
 
     def __getattr__(self, name: str) -> _Column:
+        if name.startswith("_"):  # (not a field: a copy's slots before they are set)
+            raise AttributeError(name)
         for column in self._batches:
             if column.descriptor.component.endswith(f":{name}"):
                 return column
