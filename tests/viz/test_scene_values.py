@@ -1,6 +1,7 @@
 """The 3D scene's values (:mod:`ar_anchor.viz.parts`' batched arithmetic, rotation matrices throughout) are
 those :class:`~ar_anchor.geometry.Pose` composition gives, target by target: in float64 to 1e-9, and read
-back from a recording (rerun keeps float32) to float32's rounding, at the same frames."""
+back from a recording (rerun keeps float32) to float32's rounding, at the same frames; and the arrow arrays
+:meth:`Recording.cells <ar_anchor.viz.sinks.Recording.cells>` builds are those rerun's own archetypes build."""
 
 from __future__ import annotations
 
