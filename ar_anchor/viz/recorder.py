@@ -85,7 +85,18 @@ from ..sources.base import Frame
 from ..targets import TargetId, TrackState
 from ..track.results import FrameResult, TargetResult
 from .blueprints import Framing, run_blueprint
-from .parts import closed_squares, entity_name, mesh3d
+from .parts import (
+    Drawings,
+    Place,
+    Shapes,
+    Trail,
+    branch_strips,
+    camera_in_world,
+    causal_axes,
+    entity_name,
+    mesh3d,
+    placed,
+)
 from .pinhole import _distortion_note, image_from_camera
 from .series import SeriesBuffer
 from .sinks import Recording
@@ -102,10 +113,10 @@ _STATE_COLOURS = {
 }
 _FAILED_COLOUR = (255, 60, 60)
 _MEMBER_RADIUS = 0.5  # the outline of a marker drawn as part of its board (FrameResult.board_members)
-_CAUSAL_COLOURS = [(255, 120, 120, 160), (120, 255, 120, 160), (120, 120, 255, 160)]  # x, y, z: pale
-_BRANCH_COLOURS = np.array([(90, 200, 255, 90), (255, 140, 60, 90)], np.uint8)  # the filter's branch 0, 1
+_METRICS = ("reproj_px", "ambiguity", "inliers", "flip_evidence_px", "rotation_error_deg")  # per target
+_SHAPES_KEPT = 256  # the targets' outlines and axes kept built (a learned group's outline changes)
 _TRAJECTORY_POINTS = 1000  # the camera's trajectory line keeps the last this many centres
-_NO_AXES = rr.TransformAxes3D(axis_length=0.0)  # a gone target's axes (see _clear_gone), built once
+_NO_AXES = Recording.prebuilt(rr.TransformAxes3D(axis_length=0.0))  # a gone target's axes (_clear_gone)
 _SINK_CHECK_S = 2.0  # how often the sinks are flushed to find out whether they still write
 IMAGE = "world/camera/image"  # the frame, under the camera's pinhole (where the viewer projects the 3D scene)
 OVERLAY_IMAGE = "camera/overlay"  # the annotated image (``overlay_images``), outside the projected world
@@ -159,12 +170,15 @@ class RerunRecorder:
         self._shapes_logged: set[TargetId] = set()  # targets whose shape is in the current part and not cleared
         self._drawn: dict[TargetId, set[str]] = {}  # a target -> its entities logged since it was last cleared
         self._meshes: dict[TargetId, list[rr.Mesh3D]] = {}  # a target -> its overlay models as meshes
+        self._drawings = Drawings(_SHAPES_KEPT)  # each target's outline and axes
         self._video_frame_ns: np.ndarray | None = None  # a referenced source video's frame times
         self._video_part: str | None = None  # the part that holds that video (the first)
         self._states: dict[TargetId, TrackState] = {}
-        self._trajectory: list[np.ndarray] = []
+        self._series_of: dict[TargetId, tuple[str, ...]] = {}  # a target -> its metrics' series (_metric_series)
+        self._trajectory = Trail(_TRAJECTORY_POINTS)  # the camera centre's last places
+        self._shapes = Shapes(_SHAPES_KEPT)  # each target's branch shape (world/hypotheses)
         self._labelled = False  # world/labels holds something (cleared when no target is left)
-        self._world_from_camera: Pose | None = None  # the camera where the anchor last placed it
+        self._world_from_camera: Place | None = None  # the camera where the anchor last placed it
         self._hypotheses_drawn = False
         self._framed = False  # the 3D view's eye framed on the targets (once, at the first frame placing them)
         self._causal_drawn = False
@@ -259,17 +273,13 @@ class RerunRecorder:
         and overlay models. The anchor's is static (it is the world frame); any other target's is logged
         on the timeline, so that clearing the target when it is gone removes it."""
         path = "world" if is_anchor else self._own(name, f"world/targets/{entity_name(name)}")
-        length_m = target.length_m
+        outline, axes = self._drawings(target)  # (built once per shape: targets come and go, each drawn anew)
         log_ = self.recording.log
-        log_(
-            f"{path}/outline",
-            rr.LineStrips3D(closed_squares(target), colors=[(230, 230, 230)], radii=[length_m / 60]),
-            static=is_anchor,
-        )
-        log_(f"{path}/axes", rr.TransformAxes3D(axis_length=length_m * 0.75), static=is_anchor)
+        log_(f"{path}/outline", outline, static=is_anchor)
+        log_(f"{path}/axes", axes, static=is_anchor)
         if self.overlay_models is not None:
             if name not in self._meshes:  # built once per target: it comes back with the same models
-                self._meshes[name] = [mesh3d(placed.model) for placed in self.overlay_models(target)]
+                self._meshes[name] = [mesh3d(overlay.model) for overlay in self.overlay_models(target)]
             for index, mesh in enumerate(self._meshes[name]):
                 log_(f"{path}/overlay/{index}", mesh, static=is_anchor)
         self._shapes_logged.add(name)
@@ -369,15 +379,16 @@ class RerunRecorder:
         colours, labels, radii = [], [], []
         failed = {f.marker_id for f in result.failures}
         members = result.board_members()
+        targets = result.targets
         for marker_id in result.detections.ids.tolist():
-            name = TargetId.marker(marker_id)
+            name = f"marker:{marker_id}"  # (TargetId.marker's string, which finds its target's entries)
             board = members.get(name)
             if board is not None:  # part of a board: thin, in the board's colour, no label of its own
-                colours.append(_STATE_COLOURS[result.targets[board].state])
+                colours.append(_STATE_COLOURS[targets[board].state])
                 labels.append("")
                 radii.append(_MEMBER_RADIUS)
                 continue
-            target = result.targets.get(name)
+            target = targets.get(name)
             colour = (
                 _STATE_COLOURS[target.state] if target else (_FAILED_COLOUR if marker_id in failed else (160, 160, 160))
             )
@@ -386,7 +397,8 @@ class RerunRecorder:
             radii.append(1.0)
         quads = np.asarray(result.detections.corners, np.float64).reshape(-1, 4, 2)
         strips = (np.concatenate([quads, quads[:, :1]], axis=1) + 0.5) * scale  # (N, 5, 2), one array
-        self.series.log(f"{IMAGE}/markers", rr.LineStrips2D(strips, colors=colours, labels=labels, radii=radii))
+        markers = Recording.cells("LineStrips2D", strips=strips, colors=colours, labels=labels, radii=radii)
+        self.series.log(f"{IMAGE}/markers", markers)
         corners = np.asarray(result.detections.corners.reshape(-1, 2), np.float64)
         self.series.log(f"{IMAGE}/corners", self.recording.image_points_data(corners, 1.5, [(255, 0, 255)], scale))
         for name, target in result.targets.items():
@@ -422,15 +434,15 @@ class RerunRecorder:
         """Each target's metrics (sent in batches), state changes and filter events."""
         scalar = self.series.add
         for name, target in result.targets.items():
-            part = entity_name(name)
-            if math.isfinite(target.reproj_px):
-                scalar(self._own(name, f"metrics/reproj_px/{part}"), target.reproj_px)
-            if math.isfinite(target.ambiguity):
-                scalar(self._own(name, f"metrics/ambiguity/{part}"), target.ambiguity)
-            if name.is_board and target.measured:
-                scalar(self._own(name, f"metrics/inliers/{part}"), float(target.inliers))
-            if math.isfinite(target.evidence_px):
-                scalar(self._own(name, f"metrics/flip_evidence_px/{part}"), target.evidence_px)
+            *series, rotation_error = self._metric_series(name)
+            inliers = float(target.inliers) if name.is_board and target.measured else math.nan
+            owned = None
+            for entity, value in zip(series, (target.reproj_px, target.ambiguity, inliers, target.evidence_px)):
+                if math.isfinite(value):  # (the target's own: cleared when it is gone)
+                    if owned is None:
+                        owned = self._drawn.setdefault(name, set())
+                    owned.add(entity)
+                    scalar(entity, value)
             previous_state = self._states.get(name)
             if previous_state != target.state:
                 self._states[name] = target.state
@@ -440,7 +452,15 @@ class RerunRecorder:
                 self.recording.text("events", f"{name}: {event.kind}: {event.message}", warn=warn)
             if truth is not None and name in truth:
                 error = angle_between_deg(target.pose.rotation, truth[name].rotation)
-                scalar(self._own(name, f"metrics/rotation_error_deg/{part}"), error)
+                scalar(self._own(name, rotation_error), error)
+
+    def _metric_series(self, name: TargetId) -> tuple[str, ...]:
+        """The target's ``metrics/<metric>/<target>`` series (:data:`_METRICS`), named once per target."""
+        series = self._series_of.get(name)
+        if series is None:
+            part = entity_name(name)
+            series = self._series_of[name] = tuple(f"metrics/{metric}/{part}" for metric in _METRICS)
+        return series
 
     def _log_world(self, result: FrameResult, truth: Mapping[str, Pose] | None) -> None:
         """The camera (placed by the anchor; held where it was last seen while the anchor is out of view),
@@ -456,28 +476,31 @@ class RerunRecorder:
                 "world/truth_camera", rr.Points3D(centre, radii=0.005, colors=[(255, 255, 255)], labels=["true camera"])
             )
         if anchor is not None:
-            self._log_camera(anchor.pose.inverse(), anchor.length_m)
+            self._log_camera(camera_in_world(anchor.pose), anchor.length_m)
         world_from_camera = self._world_from_camera
         if world_from_camera is None:
             return
+        others = [target for name, target in result.targets.items() if name != self.anchor]
+        rotations, translations = placed(world_from_camera, [target.pose for target in others])  # world_from_target
         labels: list[tuple[str, np.ndarray, float]] = []  # every target's name at its centre, in the world
+        index = 0
         for name, target in result.targets.items():
             if name == self.anchor:
                 labels.append((name, np.zeros(3), target.length_m))
                 continue
             if name not in self._shapes_logged or any(e.kind == "group" for e in target.events):
                 self._log_shape(name, target, is_anchor=False)  # (a learned group's members changed: drawn anew)
-            world_from_target = world_from_camera.compose(target.pose)
             entity = self._own(name, f"world/targets/{entity_name(name)}")
-            self.series.transform(entity, world_from_target.tvec, world_from_target.rotation)  # sent in batches
-            labels.append((name, world_from_target.tvec, target.length_m))
+            self.series.transform(entity, translations[index], rotations[index])  # sent in batches
+            labels.append((name, translations[index], target.length_m))
+            index += 1
         self._log_labels(labels)
         if labels and not self._framed:
             self._frame_targets(labels, world_from_camera)
         self._log_hypotheses(result, world_from_camera)
         self._log_causal(result, world_from_camera)
 
-    def _frame_targets(self, labels: list[tuple[str, np.ndarray, float]], world_from_camera: Pose) -> None:
+    def _frame_targets(self, labels: list[tuple[str, np.ndarray, float]], world_from_camera: Place) -> None:
         """The layout again, its 3D eye framed on the targets placed now (``labels``), from the camera's side."""
         self._framed = True
         if not self._sends_layout:
@@ -485,7 +508,7 @@ class RerunRecorder:
         framing = Framing.on(
             np.array([position for _, position, _ in labels]),
             np.array([length for _, _, length in labels]),
-            world_from_camera.tvec,
+            world_from_camera[1],
         )
         self.recording.send_blueprint(self._layout(framing))
 
@@ -500,61 +523,46 @@ class RerunRecorder:
             return
         self.series.log(
             "world/labels",
-            rr.Points3D(
-                np.array([position for _, position, _ in labels]),
+            Recording.cells(
+                "Points3D",
+                positions=np.array([position for _, position, _ in labels]),
                 labels=[name for name, _, _ in labels],
                 radii=np.array([length / 40 for _, _, length in labels]),
             ),
         )
         self._labelled = True
 
-    def _log_camera(self, world_from_camera: Pose, length_m: float) -> None:
+    def _log_camera(self, world_from_camera: Place, length_m: float) -> None:
         """``world/camera``'s pose (its translation is the camera centre C = -R^T t) and its trajectory."""
         self._world_from_camera = world_from_camera
-        self.series.transform("world/camera", world_from_camera.tvec, world_from_camera.rotation)  # in batches
-        self._trajectory.append(world_from_camera.tvec.copy())
-        del self._trajectory[:-_TRAJECTORY_POINTS]
+        rotation, translation = world_from_camera
+        self.series.transform("world/camera", translation, rotation)  # in batches
+        self._trajectory.append(translation)
         if len(self._trajectory) >= 2:
-            self.series.log(
-                "world/camera_trajectory",
-                rr.LineStrips3D([np.asarray(self._trajectory)], colors=[(255, 210, 60)], radii=[length_m / 80]),
-            )
+            path = self._trajectory.points()[None]  # (one strip)
+            line = Recording.cells("LineStrips3D", strips=path, colors=[(255, 210, 60)], radii=[length_m / 80])
+            self.series.log("world/camera_trajectory", line)
 
-    def _log_hypotheses(self, result: FrameResult, world_from_camera: Pose) -> None:
+    def _log_hypotheses(self, result: FrameResult, world_from_camera: Place) -> None:
         """Both IPPE branches of every target, faint, so the flip the filter resolves can be seen: all
         targets' in one ``LineStrips3D`` (per branch its marker squares and its normal), logged whole each
         frame, so a branch or target that is gone is gone from it."""
-        strips: list[np.ndarray] = []
-        colours: list[np.ndarray] = []
-        radii: list[np.ndarray] = []
-        for target in result.targets.values():
-            if not target.branch_poses:
-                continue
-            normal = np.array([[0.0, 0.0, 0.0], *[[0.0, 0.0, target.length_m]] * 4])  # as long as a square
-            shape = np.concatenate([closed_squares(target), normal[None]])  # (S + 1, 5, 3)
-            for branch, pose in enumerate(target.branch_poses):
-                if pose is None:
-                    continue
-                rotation = world_from_camera.rotation @ pose.rotation
-                translation = world_from_camera.rotation @ pose.tvec + world_from_camera.tvec
-                strips.append(shape @ rotation.T + translation)
-                colours.append(np.tile(_BRANCH_COLOURS[min(branch, 1)], (len(shape), 1)))
-                radii.append(np.full(len(shape), target.length_m / 120, np.float32))
-        if strips:
-            lines = rr.LineStrips3D(np.concatenate(strips), colors=np.concatenate(colours), radii=np.concatenate(radii))
+        drawn = branch_strips(list(result.targets.values()), world_from_camera, self._shapes)
+        if drawn is not None:
+            strips, colours, radii = drawn
+            lines = Recording.cells("LineStrips3D", strips=strips, colors=colours, radii=radii)
             self.series.log("world/hypotheses", lines)
             self._hypotheses_drawn = True
         elif self._hypotheses_drawn:
             self._clear("world/hypotheses")
             self._hypotheses_drawn = False
 
-    def _log_causal(self, result: FrameResult, world_from_camera: Pose) -> None:
+    def _log_causal(self, result: FrameResult, world_from_camera: Place) -> None:
         """Offline replay: the live (causal) filter's pose of every target beside the offline one, as thin
         axes (``world/causal``, all targets in one ``Arrows3D``), and the angle between the two poses."""
         causal = result.causal_targets
         if causal is None:
             return
-        origins, vectors, colours = [], [], []
         for name, target in causal.items():
             offline = result.targets.get(name)
             if offline is not None:
@@ -562,13 +570,9 @@ class RerunRecorder:
                     self._own(name, f"metrics/offline_vs_causal_deg/{entity_name(name)}"),
                     angle_between_deg(offline.pose.rotation, target.pose.rotation),
                 )
-            world_from_target = world_from_camera.compose(target.pose)
-            axes = world_from_target.rotation.T * (target.length_m * 0.75)  # rows: the target's x, y, z
-            origins.extend([world_from_target.tvec] * 3)
-            vectors.extend(axes)
-            colours.extend(_CAUSAL_COLOURS)
-        if origins:
-            arrows = rr.Arrows3D(origins=np.array(origins), vectors=np.array(vectors), colors=np.array(colours))
+        if causal:
+            origins, vectors, colours = causal_axes(list(causal.values()), world_from_camera)
+            arrows = rr.Arrows3D(origins=origins, vectors=vectors, colors=colours)
             self.series.log("world/causal", arrows)
             self._causal_drawn = True
         elif self._causal_drawn:

@@ -66,9 +66,11 @@ class SeriesBuffer:
         """One point of the series ``entity`` at the current frame; None and non-finite values are skipped."""
         if value is None or not math.isfinite(value) or not self._frames:
             return
-        rows, values = self._series.setdefault(entity, ([], []))
-        rows.append(len(self._frames) - 1)
-        values.append(float(value))
+        kept = self._series.get(entity)
+        if kept is None:
+            kept = self._series[entity] = ([], [])
+        kept[0].append(len(self._frames) - 1)
+        kept[1].append(float(value))
 
     def transform(self, entity: str, translation: np.ndarray, rotation: np.ndarray) -> None:
         """``entity``'s ``Transform3D`` (``translation``, 3x3 ``rotation``) at the current frame."""

@@ -291,6 +291,24 @@ class Recording:
         :meth:`rows_columns`."""
         return [(batch.component_descriptor(), batch.as_arrow_array()) for batch in data.as_component_batches()]
 
+    @staticmethod
+    def cells(archetype: str, **fields: Any) -> Any:
+        """What ``rr.<archetype>(**fields)`` logs (``LineStrips2D``, ``LineStrips3D``, ``Points2D``, ``Points3D``),
+        its arrow arrays built directly from arrays (rerun's own conversion, per field, costs several times
+        more): ``strips`` (N, K, D) floats (strips of one length), ``positions`` (N, D) floats, ``colors``
+        (N, 3 or 4) integers 0-255 (opaque without alpha), ``radii`` floats, ``labels`` strings. Logged as an archetype
+        (:meth:`log`, :meth:`.series.SeriesBuffer.log`); its fields read as arrow columns (``.strips``)."""
+        kinds = _fields_of(archetype)
+        places = sorted((kinds[name], value, name) for name, value in fields.items())  # (in rerun's order)
+        return _Cells([_Column(descriptor, _arrow(name, value, kind)) for (_, descriptor, kind), value, name in places])
+
+    @staticmethod
+    def prebuilt(data: Any) -> Any:
+        """The archetype ``data`` with its components converted to arrow once, to be logged (:meth:`log`)
+        many times: what ``rr.log`` of ``data`` logs, without converting it again each time (its fields
+        read as ``data``'s)."""
+        return _Prebuilt(data)
+
     def rows_columns(self, entity: str, rows: Sequence[list[tuple[Any, pa.Array]]], times: Any) -> None:
         """Several rows of one archetype at ``entity`` in one call: ``rows[i]`` (:meth:`component_arrays`, the
         same components in every row) at the i-th row of ``times`` (:meth:`time_columns`)."""
@@ -343,12 +361,12 @@ class Recording:
         self.stream.log(self._at(entity), self.image_points_data(pixels, radius, colours, scale), static=static)
 
     @staticmethod
-    def image_points_data(pixels: np.ndarray, radius: float, colours: Sequence[Colour], scale: float) -> rr.Points2D:
-        """What :meth:`image_points` logs (for :meth:`~.series.SeriesBuffer.log`)."""
+    def image_points_data(pixels: np.ndarray, radius: float, colours: Sequence[Colour], scale: float) -> Any:
+        """What :meth:`image_points` logs (for :meth:`~.series.SeriesBuffer.log`): ``rr.Points2D``'s components."""
         pixels = np.asarray(pixels)
         if not np.issubdtype(pixels.dtype, np.floating):
             pixels = pixels.astype(np.float64)
-        return rr.Points2D((pixels + 0.5) * scale, radii=radius, colors=colours)
+        return Recording.cells("Points2D", positions=(pixels + 0.5) * scale, radii=radius, colors=colours)
 
     def points3d(
         self,
@@ -381,6 +399,79 @@ class _Column:
         return self.array
 
 
+class _Prebuilt:
+    """An archetype whose components are converted once (:meth:`Recording.prebuilt`)."""
+
+    __slots__ = ("_batches", "_data")
+
+    def __init__(self, data: Any) -> None:
+        self._data = data
+        self._batches = [_Column(descriptor, array) for descriptor, array in Recording.component_arrays(data)]
+
+    def as_component_batches(self) -> list[_Column]:
+        return self._batches
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):  # (not the archetype's: a copy's slots before they are set)
+            raise AttributeError(name)
+        return getattr(self._data, name)
+
+
+class _Cells:
+    """An archetype's components built as arrow arrays (:meth:`Recording.cells`), in rerun's order."""
+
+    __slots__ = ("_batches",)
+
+    def __init__(self, columns: list[_Column]) -> None:
+        self._batches = columns
+
+    def as_component_batches(self) -> list[_Column]:
+        return self._batches
+
+    def __getattr__(self, name: str) -> _Column:
+        if name.startswith("_"):  # (not a field: a copy's slots before they are set)
+            raise AttributeError(name)
+        for column in self._batches:
+            if column.descriptor.component.endswith(f":{name}"):
+                return column
+        raise AttributeError(name)
+
+
+_SAMPLES = {  # an archetype of each kind Recording.cells builds, with every field it takes
+    "LineStrips2D": lambda: rr.LineStrips2D(np.zeros((1, 2, 2)), radii=[1.0], colors=[(1, 2, 3)], labels=["a"]),
+    "LineStrips3D": lambda: rr.LineStrips3D(np.zeros((1, 2, 3)), radii=[1.0], colors=[(1, 2, 3)], labels=["a"]),
+    "Points2D": lambda: rr.Points2D(np.zeros((1, 2)), radii=[1.0], colors=[(1, 2, 3)], labels=["a"]),
+    "Points3D": lambda: rr.Points3D(np.zeros((1, 3)), radii=[1.0], colors=[(1, 2, 3)], labels=["a"]),
+}
+
+
+@functools.cache
+def _fields_of(archetype: str) -> dict[str, tuple[int, Any, pa.DataType]]:
+    """The components rerun logs for ``archetype``: a field -> its place among them, descriptor and arrow type."""
+    arrays = Recording.component_arrays(_SAMPLES[archetype]())
+    return {d.component.partition(":")[2]: (place, d, array.type) for place, (d, array) in enumerate(arrays)}
+
+
+def _arrow(field: str, value: Any, kind: pa.DataType) -> pa.Array:
+    """``value`` as rerun converts the archetype's ``field`` (:meth:`Recording.cells`)."""
+    if field == "strips":  # (N, K, D): N strips of K points
+        value = np.asarray(value)
+        count, length = value.shape[:2]
+        points = pa.FixedSizeListArray.from_arrays(value.astype(np.float32).ravel(), type=kind.value_type)
+        return pa.ListArray.from_arrays(pa.array(np.arange(count + 1, dtype=np.int32) * length), points, type=kind)
+    if field == "positions":
+        return pa.FixedSizeListArray.from_arrays(np.asarray(value, np.float32).ravel(), type=kind)
+    if field == "colors":
+        rows = np.asarray(value, np.uint32)
+        if rows.size == 0:
+            return pa.array(np.zeros(0, np.uint32), type=kind)
+        alpha = rows[:, 3] if rows.shape[1] == 4 else 0xFF
+        return pa.array(rows[:, 0] << 24 | rows[:, 1] << 16 | rows[:, 2] << 8 | alpha, type=kind)
+    if field == "radii":
+        return pa.array(np.asarray(value, np.float32).ravel(), type=kind)
+    return pa.array([str(text) for text in value], type=kind)  # labels
+
+
 @functools.cache
 def _columns_of(archetype: str) -> tuple[tuple[Any, ...], tuple[pa.ListType, ...]]:
     """The descriptors and arrow types of the columns rerun builds for an archetype: ``scalars``
@@ -397,9 +488,10 @@ def _columns_of(archetype: str) -> tuple[tuple[Any, ...], tuple[pa.ListType, ...
 
 
 @functools.cache
-def _clear(recursive: bool) -> rr.Clear:
-    """``rr.Clear(recursive=recursive)``, built once (a gone target's clears are several a frame)."""
-    return rr.Clear(recursive=recursive)
+def _clear(recursive: bool) -> _Prebuilt:
+    """``rr.Clear(recursive=recursive)``'s components, converted once (a gone target's clears are several a
+    frame)."""
+    return Recording.prebuilt(rr.Clear(recursive=recursive))
 
 
 @functools.cache
