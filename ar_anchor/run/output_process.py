@@ -62,6 +62,8 @@ log = logging.getLogger(__name__)
 _POLL_S = 0.1  # how often a wait looks whether the child is still there
 _STAND_IN = np.zeros((1, 1, 3), np.uint8)  # the image of a frame whose pixels the worker does not read
 _ABANDON_WAIT_S = 5.0  # after an abandon, how long the child has to close its outputs
+_STARTUP_FRAMES = 32  # frames that may wait for the child while it starts (see OutputProcess._limit)
+_STARTUP_BYTES = 96 << 20  # and their pixels at most (a 1080p frame is 6 MB: 15 frames)
 _CHILD = "from ar_anchor.run.output_process import child_main; child_main()"
 
 
@@ -77,7 +79,10 @@ class OutputProcess:
             raise ValueError("depth must be >= 1")
         self.spec = spec
         self._depth = depth
-        self._ring = _Ring(depth + 1, spec.camera.width * spec.camera.height * 3)
+        frame_bytes = spec.camera.width * spec.camera.height * 3
+        self._startup_depth = max(depth, min(_STARTUP_FRAMES, _STARTUP_BYTES // max(1, frame_bytes)))
+        self._caught_up = False  # the child opened its outputs and took the frames queued meanwhile
+        self._ring = _Ring(self._startup_depth + 1, frame_bytes)
         to_child, self._tx_fd = os.pipe()
         _roomy(self._tx_fd)
         self._rx_fd, from_child = os.pipe()
@@ -213,7 +218,7 @@ class OutputProcess:
         or the child is gone."""
         self._drain()
         self.check()
-        while self._in_flight >= self._depth and self._gone is None:
+        while self._in_flight >= self._limit() and self._gone is None:
             if not block:
                 self.skipped += 1
                 return False
@@ -235,6 +240,16 @@ class OutputProcess:
             return False
         self._in_flight += 1
         return True
+
+    def _limit(self) -> int:
+        """How many frames may be unacknowledged: ``depth``; while the child starts (its imports, the
+        recording opened: 0.5-1 s) up to :data:`_STARTUP_FRAMES` (and :data:`_STARTUP_BYTES` of pixels), so
+        that neither a replay waits for it nor a live run drops the first second from the recording."""
+        if not self._caught_up:
+            if self.image_logging is None or self._in_flight > self._depth:
+                return self._startup_depth
+            self._caught_up = True
+        return self._depth
 
     # ------------------------------------------------------------------ closing
     def abandon(self) -> None:
