@@ -16,7 +16,7 @@ with the run: it inherits the run's working directory, environment and limits, i
   copied into a slot of shared memory (an anonymous ``memfd`` both processes map; an image larger than a
   slot, or a machine without one, sends them through the pipe);
 * the child acknowledges each frame (its slot free again, its ``render_ms``/``log_ms``); at most ``depth``
-  frames are unacknowledged. With ``block`` (replay, demo) the tracker waits for room: nothing is dropped;
+  frames are unacknowledged (more while it starts: :meth:`OutputProcess._limit`). With ``block`` (replay, demo) the tracker waits for room: nothing is dropped;
   without (live) a frame that finds no room is not drawn or logged (still in ``poses.csv``), and counted;
 * the child's log records are said by the tracker's process, as its own; its stdout and stderr go nowhere;
 * the child runs at a lower priority (``nice`` 10): where both want a core, the tracker's threads get it.
