@@ -256,3 +256,20 @@ def corner_view(camera: CameraModel) -> tuple[SyntheticSource, Pose]:
     # the camera looks at a point right of and below the marker, so the marker lands top-left
     camera_from_world = look_at((0.22, -0.16, 0.6), (0.22, -0.16, 0.0))
     return SyntheticSource(scene), camera_from_world
+
+
+def orbit_pairs(frames: int) -> tuple[CameraModel, list]:
+    """A demo scene seen from near, orbiting (a board and lone markers, coming and going): each frame with
+    the tracker's result, and the scene's camera, for the recording's tests."""
+    from ar_anchor.config import demo_config
+    from ar_anchor.sources.synthetic import SyntheticSource
+    from ar_anchor.synthetic import demo_scene
+    from ar_anchor.synthetic.trajectory import Trajectory
+    from ar_anchor.track.tracker import Tracker
+
+    config = demo_config()
+    trajectory = Trajectory("orbit", look_at=(-0.01, 0.0, 0.0), near_m=0.3)
+    scene = demo_scene(config, CameraModel.from_fov(480, 360, 70.0), frames=frames, trajectory=trajectory)
+    tracker = Tracker(config, scene.camera)
+    with SyntheticSource(scene) as source:
+        return scene.camera, [(frame, tracker.process(frame)) for frame in source]

@@ -16,10 +16,7 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from ar_anchor.camera import CameraModel
-from ar_anchor.config import RecordingConfig, demo_config
-from ar_anchor.sources.synthetic import SyntheticSource
-from ar_anchor.synthetic import demo_scene
-from ar_anchor.synthetic.trajectory import Trajectory
+from ar_anchor.config import RecordingConfig
 from ar_anchor.viz import recorder as recorder_module
 from ar_anchor.viz.recorder import RerunRecorder
 from ar_anchor.viz.sinks import Recording
@@ -30,19 +27,14 @@ TIMELINES = ("frame", "time")
 @pytest.fixture(scope="module")
 def tracked() -> tuple[CameraModel, list]:
     """A demo scene seen from near, orbiting: a board and lone markers, targets coming and going."""
-    from ar_anchor.track.tracker import Tracker
+    from tests.helpers import orbit_pairs
 
-    config = demo_config()
-    trajectory = Trajectory("orbit", look_at=(-0.01, 0.0, 0.0), near_m=0.3)
-    scene = demo_scene(config, CameraModel.from_fov(480, 360, 70.0), frames=30, trajectory=trajectory)
-    tracker = Tracker(config, scene.camera)
-    with SyntheticSource(scene) as source:
-        pairs = [(frame, tracker.process(frame)) for frame in source]
+    camera, pairs = orbit_pairs(30)
     seen = [set(result.targets) for _, result in pairs]
     # (what the comparison needs of the scene: several targets at once, a board, targets gone and back)
     assert max(map(len, seen)) >= 4 and any(name.is_board for names in seen for name in names)
     assert sum(bool(before - after) for before, after in zip(seen, seen[1:])) >= 3
-    return scene.camera, pairs
+    return camera, pairs
 
 
 def _record(

@@ -15,11 +15,8 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from ar_anchor.camera import CameraModel
-from ar_anchor.config import RecordingConfig, demo_config
+from ar_anchor.config import RecordingConfig
 from ar_anchor.geometry import Pose
-from ar_anchor.sources.synthetic import SyntheticSource
-from ar_anchor.synthetic import demo_scene
-from ar_anchor.synthetic.trajectory import Trajectory
 from ar_anchor.targets import TargetId
 from ar_anchor.viz.parts import Shapes, Trail, branch_strips, camera_in_world, causal_axes, closed_squares, placed
 from ar_anchor.viz.recorder import RerunRecorder
@@ -30,21 +27,16 @@ from ar_anchor.viz.sinks import Recording
 def tracked() -> tuple[CameraModel, list]:
     """A demo scene seen from near, orbiting (a board and lone markers, coming and going); every other frame
     with the live filter's targets beside (an offline replay's ``causal_targets``), one of them dropped."""
-    from ar_anchor.track.tracker import Tracker
+    from tests.helpers import orbit_pairs
 
-    config = demo_config()
-    trajectory = Trajectory("orbit", look_at=(-0.01, 0.0, 0.0), near_m=0.3)
-    scene = demo_scene(config, CameraModel.from_fov(480, 360, 70.0), frames=24, trajectory=trajectory)
-    tracker = Tracker(config, scene.camera)
-    with SyntheticSource(scene) as source:
-        pairs = [(frame, tracker.process(frame)) for frame in source]
+    camera, pairs = orbit_pairs(24)
     pairs = [
         (frame, dataclasses.replace(r, causal_targets=dict(list(r.targets.items())[1:]) if frame.index % 2 else None))
         for frame, r in pairs
     ]
     assert max(len(r.targets) for _, r in pairs) >= 4
     assert any(pose is not None for _, r in pairs for t in r.targets.values() for pose in t.branch_poses[1:])
-    return scene.camera, pairs
+    return camera, pairs
 
 
 def _expected(pairs: list) -> dict[tuple[str, str], dict[int, np.ndarray]]:
